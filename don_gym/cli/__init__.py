@@ -1,0 +1,55 @@
+"""The ``don-gym`` command line.
+
+Each subcommand lives in its own module of this package with two functions:
+``register(subparsers)`` adds its parser (keep imports there light) and
+``run(args) -> int`` does the work. User errors (:class:`don_gym.errors.DonGymError`)
+are printed as one line on stderr with exit status 2, never as a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from don_gym.errors import DonGymError
+
+# Subcommand modules, in the order --help lists them.
+SUBCOMMANDS = ["embed"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="don-gym",
+        description=(
+            "Dense Object Nets in simulation: optimal descriptors from meshes (Kupcsik et al. 2021), "
+            "datasets, training, and a PyBullet Panda pick-and-place benchmark."
+        ),
+        epilog="Run 'don-gym COMMAND --help' for the options of each command.",
+    )
+    from don_gym import __version__
+
+    parser.add_argument("--version", action="version", version=f"don-gym {__version__}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name in SUBCOMMANDS:
+        module = importlib.import_module(f"don_gym.cli.{name.replace('-', '_')}")
+        module.register(subparsers)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.run(args) or 0)
+    except (DonGymError, FileNotFoundError, PermissionError, IsADirectoryError) as exc:
+        print(f"don-gym {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"don-gym {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
