@@ -1,0 +1,35 @@
+"""``don-gym export``: write dataset scenes in another project's layout."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "export",
+        help="export dataset scenes in the original Dense Object Nets (pdc) layout",
+        description=(
+            "Write scenes of a don_gym dataset in the layout of the original Dense Object Nets code "
+            "(processed/images/*_rgb.png, *_depth.png, image_masks/, pose_data.yaml, camera_info.yaml), "
+            "so that its loaders read our data."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    parser.add_argument("data", help="dataset directory written by don-gym build-dataset")
+    parser.add_argument("--format", default="pdc", choices=["pdc"], help="target layout")
+    parser.add_argument("--scene", type=int, action="append", help="scene position to export (repeatable); default all")
+    parser.add_argument("--out", required=True, help="output directory")
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from don_gym.dataset import DONDataset
+    from don_gym.export import export_scene_pdc
+
+    dataset = DONDataset(args.data)
+    scenes = args.scene if args.scene else range(len(dataset.scenes))
+    for scene in scenes:
+        path = export_scene_pdc(dataset, scene, args.out)
+        print(f"wrote {path}")
+    return 0

@@ -1,0 +1,61 @@
+"""``don-gym train``: train a Dense Object Net with one of the four methods."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    from don_gym.methods import METHOD_DESCRIPTIONS, METHODS
+
+    methods = "; ".join(f"{m}: {METHOD_DESCRIPTIONS[m]}" for m in METHODS)
+    parser = subparsers.add_parser(
+        "train",
+        help="train a DON (supervised on optimal targets, or self-supervised contrastive)",
+        description=(
+            f"Train a Dense Object Net on a dataset from 'don-gym build-dataset'. Methods: {methods}. "
+            "Writes RUN/losses.csv, RUN/loss_curve.png, periodic checkpoints and RUN/model.safetensors. "
+            "A fixed --seed gives the same loss curve; --resume continues an interrupted run exactly."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    parser.add_argument("--method", required=True, choices=METHODS, help="training method")
+    parser.add_argument("--data", required=True, help="dataset directory")
+    parser.add_argument("--out", required=True, help="run directory")
+    parser.add_argument("--steps", type=int, default=2000, help="optimisation steps")
+    parser.add_argument("--arch", default="resnet-lite", help="network: resnet-lite (CPU default), resnet18, resnet34")
+    parser.add_argument("--batch-size", type=int, default=4, help="images (supervised) or image pairs per step")
+    parser.add_argument("--lr", type=float, default=None, help="Adam learning rate (default: 1e-3 resnet-lite, 1e-4 else)")
+    parser.add_argument("--seed", type=int, default=0, help="seed for weights, data order and augmentation")
+    parser.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints")
+    parser.add_argument("--pretrained", default=None, help="local ImageNet weights (torchvision ResNet layout)")
+    parser.add_argument("--depth-source", default="fused", choices=["fused", "sensor", "ideal"],
+                        help="depth for self-supervised correspondences (fused = the original pipeline)")
+    parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    parser.add_argument("--resume", action="store_true", help="continue the run in --out")
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from don_gym.train import TrainConfig, train
+
+    config = TrainConfig(
+        method=args.method,
+        data=args.data,
+        out=args.out,
+        steps=args.steps,
+        arch=args.arch,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        seed=args.seed,
+        checkpoint_every=args.checkpoint_every,
+        pretrained_path=args.pretrained,
+        depth_source=args.depth_source,
+        device=args.device,
+    )
+    result = train(config, resume=args.resume)
+    print(
+        f"{result.model_path}: {result.steps} steps in {result.seconds:.0f} s "
+        f"({result.images_per_second:.1f} images/s), final loss {result.final_loss:.4g}"
+    )
+    return 0

@@ -1,0 +1,140 @@
+"""PyTorch datasets over a don_gym dataset directory, one per training method.
+
+- :class:`SupervisedFrames`: (image, target, mask) per frame for the supervised l2 loss,
+  with the paper's target variants computed from the stored geometric target and mask:
+  ``"geometric"`` (method ``supervised``), ``"edge"`` (``supervised-edge``) and ``"mask"``
+  (``supervised-mask``).
+- :class:`CorrespondencePairs`: image pairs of one scene with pixel correspondences sampled
+  from depth (fused sensor depth by default, as the original pipeline; ``"sensor"`` and
+  ``"ideal"`` for ablations) for the self-supervised contrastive loss.
+
+Both return tensors of the stored image size; augmentation is the trainer's job.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from don_gym.correspondences import Correspondences, camera_poses_differ, sample_correspondences
+from don_gym.dataset import DONDataset
+from don_gym.errors import DatasetError
+from don_gym.render import TARGET_VARIANTS, default_edge_width_px, make_target
+
+DEPTH_SOURCES = {"fused": ("depth_fused", "mask_fused"), "sensor": ("depth", "mask"), "ideal": ("depth_ideal", "mask")}
+
+
+def rgb_to_tensor(rgb: np.ndarray) -> torch.Tensor:
+    """uint8 (H, W, 3) -> float32 (3, H, W) in [0, 1]."""
+    return torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1).float().div_(255.0)
+
+
+class SupervisedFrames(Dataset):
+    """Every frame of a dataset as ``{"rgb", "target", "object_mask"}``.
+
+    ``rgb`` float32 (3, H, W) in [0, 1]; ``target`` float32 (D, H, W); ``object_mask``
+    bool (H, W) from the rendered target (object pixels hidden in the image are
+    background, as the segmentation says).
+    """
+
+    def __init__(self, root: str, variant: str = "edge", edge_width_px: float | None = None) -> None:
+        if variant not in TARGET_VARIANTS:
+            raise DatasetError(f"target variant {variant!r} is unknown; expected one of {TARGET_VARIANTS}")
+        self.data = DONDataset(root)
+        self.variant = variant
+        self.background = np.asarray(self.data.descriptor_field().background, dtype=np.float32)
+        width = self.data.scenes[0].intrinsics.width
+        self.edge_width_px = default_edge_width_px(width) if edge_width_px is None else float(edge_width_px)
+        self.index = self.data.frames
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        scene, frame = self.index[i]
+        rgb = self.data.image(scene, frame, "rgb")
+        mask = self.data.image(scene, frame, "target_mask")
+        target = make_target(
+            self.variant, self.data.image(scene, frame, "descriptor"), mask, self.background, self.edge_width_px
+        )
+        return {
+            "rgb": rgb_to_tensor(rgb),
+            "target": torch.from_numpy(np.ascontiguousarray(target.transpose(2, 0, 1), dtype=np.float32)),
+            "object_mask": torch.from_numpy(mask),
+        }
+
+
+class CorrespondencePairs(Dataset):
+    """Random image pairs within a scene with sampled correspondences.
+
+    Item ``i`` is deterministic given ``seed`` (pair and samples drawn from a generator
+    seeded with ``(seed, i)``), so a fixed seed gives the same training data. Pairs are
+    redrawn until the camera poses differ by more than the NOTES' 0.2 m or 20 degrees
+    (at most ``max_pair_tries`` times). Returns ``{"rgb_a", "rgb_b", "object_mask_a",
+    "object_mask_b", "correspondences"}``; use ``collate_pairs`` (batch of lists).
+    """
+
+    def __init__(
+        self,
+        root: str,
+        depth_source: str = "fused",
+        length: int = 100_000,
+        seed: int = 0,
+        num_match_attempts: int = 10_000,
+        max_pair_tries: int = 20,
+    ) -> None:
+        if depth_source not in DEPTH_SOURCES:
+            raise DatasetError(f"depth source {depth_source!r} is unknown; expected one of {sorted(DEPTH_SOURCES)}")
+        self.data = DONDataset(root)
+        self.depth_kind, self.mask_kind = DEPTH_SOURCES[depth_source]
+        self.length = int(length)
+        self.seed = int(seed)
+        self.num_match_attempts = num_match_attempts
+        self.max_pair_tries = max_pair_tries
+
+    def __len__(self) -> int:
+        return self.length
+
+    def _pick_pair(self, rng: np.random.Generator) -> tuple[int, int, int]:
+        scene = int(rng.integers(len(self.data.scenes)))
+        poses = self.data.scenes[scene].T_world_camera_reported
+        for _ in range(self.max_pair_tries):
+            a, b = (int(v) for v in rng.choice(len(poses), size=2, replace=False))
+            if camera_poses_differ(poses[a], poses[b]):
+                break
+        return scene, a, b
+
+    def __getitem__(self, i: int) -> dict:
+        rng = np.random.default_rng([self.seed, int(i)])
+        scene, a, b = self._pick_pair(rng)
+        record = self.data.scenes[scene]
+        depth_a = self.data.image(scene, a, self.depth_kind)
+        depth_b = self.data.image(scene, b, self.depth_kind)
+        mask_a = self.data.image(scene, a, self.mask_kind)
+        mask_b = self.data.image(scene, b, self.mask_kind)
+        correspondences: Correspondences = sample_correspondences(
+            depth_a,
+            depth_b,
+            mask_a,
+            mask_b,
+            record.intrinsics,
+            record.T_world_camera_reported[a],
+            record.T_world_camera_reported[b],
+            rng,
+            num_match_attempts=self.num_match_attempts,
+        )
+        return {
+            "rgb_a": rgb_to_tensor(self.data.image(scene, a, "rgb")),
+            "rgb_b": rgb_to_tensor(self.data.image(scene, b, "rgb")),
+            "object_mask_a": torch.from_numpy(mask_a),
+            "object_mask_b": torch.from_numpy(mask_b),
+            "correspondences": correspondences,
+        }
+
+
+def collate_pairs(items: list[dict]) -> dict:
+    """Stack images; keep per-pair correspondences (different counts) as a list."""
+    out = {key: torch.stack([item[key] for item in items]) for key in ("rgb_a", "rgb_b", "object_mask_a", "object_mask_b")}
+    out["correspondences"] = [item["correspondences"] for item in items]
+    return out

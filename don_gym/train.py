@@ -1,0 +1,271 @@
+"""DON training with either method on one dataset directory.
+
+``train(config)`` runs Adam on a :class:`~don_gym.model.DenseObjectNet` with
+
+- ``supervised`` / ``supervised-edge`` / ``supervised-mask``: the paper's l2 loss
+  (object and background terms normalised by their pixel counts) to rendered optimal
+  descriptor targets (:class:`~don_gym.torch_data.SupervisedFrames`);
+- ``self-supervised``: the pixelwise contrastive loss with hard-negative scaling on
+  correspondences sampled from fused sensor depth
+  (:class:`~don_gym.torch_data.CorrespondencePairs`),
+
+with background randomisation and photometric jitter for both. Defaults follow the
+original DON (Adam, lr 1e-4, weight decay 1e-4, lr x0.9 every 250 steps), except the
+learning rate of the CPU-sized default network, which trains from scratch.
+
+Everything a step uses is drawn from generators seeded with ``(seed, step)``, so a
+fixed seed gives the same loss curve, and a resumed run continues it exactly.
+
+A run directory holds ``config.json``, ``losses.csv`` (one row per step),
+``loss_curve.png``, ``checkpoints/step_XXXXXX.safetensors`` every
+``checkpoint_every`` steps, ``train_state.pt`` (optimiser state for ``--resume``) and
+the final ``model.safetensors``.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from don_gym import __version__
+from don_gym.augment import AugmentConfig, augment
+from don_gym.checkpoints import load_checkpoint, save_checkpoint
+from don_gym.errors import DonGymError
+from don_gym.io import atomic_path, write_text_atomic
+from don_gym.losses import batch_contrastive_loss, supervised_l2_loss
+from don_gym.methods import SUPERVISED_TARGET_VARIANT, is_supervised, validate_method
+from don_gym.model import DEFAULT_ARCH, DenseObjectNet
+from don_gym.torch_data import CorrespondencePairs, SupervisedFrames
+
+RUN_CONFIG = "config.json"
+LOSS_CSV = "losses.csv"
+LOSS_PNG = "loss_curve.png"
+TRAIN_STATE = "train_state.pt"
+FINAL_MODEL = "model.safetensors"
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """One training run. ``lr`` None picks 1e-4 (paper) for ImageNet-layout ResNets and
+    1e-3 for the from-scratch ``resnet-lite``."""
+
+    method: str
+    data: str
+    out: str
+    steps: int = 2000
+    arch: str = DEFAULT_ARCH
+    batch_size: int = 4
+    lr: float | None = None
+    weight_decay: float = 1e-4
+    lr_decay: float = 0.9
+    lr_decay_every: int = 250
+    seed: int = 0
+    checkpoint_every: int = 500
+    pretrained_path: str | None = None
+    depth_source: str = "fused"
+    object_margin: float = 0.5
+    background_margin: float = 2.5
+    device: str = "auto"
+    augment: dict[str, float] = field(default_factory=lambda: asdict(AugmentConfig()))
+
+    def learning_rate(self) -> float:
+        if self.lr is not None:
+            return self.lr
+        return 1e-3 if self.arch == "resnet-lite" else 1e-4
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    model_path: Path
+    final_loss: float
+    steps: int
+    seconds: float
+    images_per_second: float
+
+
+def _device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def _step_generator(seed: int, step: int) -> torch.Generator:
+    generator = torch.Generator()
+    generator.manual_seed(int(np.random.SeedSequence([seed, step, 1]).generate_state(1)[0]))
+    return generator
+
+
+def _read_loss_rows(path: Path, up_to_step: int) -> list[dict[str, str]]:
+    if not path.is_file():
+        return []
+    with path.open() as f:
+        return [row for row in csv.DictReader(f) if int(row["step"]) <= up_to_step]
+
+
+def _write_loss_csv(path: Path, rows: list[dict[str, Any]]) -> None:
+    keys: list[str] = []
+    for row in rows:
+        keys += [k for k in row if k not in keys]
+    with atomic_path(path) as tmp, tmp.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=keys)
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def plot_loss_curve(rows: list[dict[str, Any]], path: Path, title: str) -> None:
+    """Loss per step (light) and its moving average (dark), log scale, as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = np.array([int(r["step"]) for r in rows])
+    loss = np.array([float(r["loss"]) for r in rows])
+    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=120)
+    ax.plot(steps, loss, color="tab:blue", alpha=0.3, lw=0.8, label="loss per step")
+    window = max(1, len(loss) // 50)
+    if len(loss) >= window:
+        smooth = np.convolve(loss, np.ones(window) / window, mode="valid")
+        ax.plot(steps[window - 1 :], smooth, color="tab:blue", lw=1.8, label=f"moving average ({window} steps)")
+    ax.set_yscale("log")
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss")
+    ax.set_title(title, fontsize=10)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp)
+    plt.close(fig)
+
+
+def checkpoint_metadata(config: TrainConfig, dataset_info: dict[str, Any], image_size: tuple[int, int], step: int) -> dict[str, Any]:
+    return {
+        "method": config.method,
+        "arch": config.arch,
+        "descriptor_dim": int(dataset_info["descriptor_dim"]),
+        "image_size": list(image_size),
+        "object": dataset_info["object"],
+        "mesh_hash": dataset_info["mesh_hash"],
+        "descriptor_field_hash": dataset_info["descriptor_field_hash"],
+        "background_descriptor": [float(v) for v in dataset_info.get("background_descriptor", [])],
+        "renderer": dataset_info["renderer"],
+        "sensor": dataset_info["sensor"],
+        "training_steps": step,
+        "seed": config.seed,
+        "don_gym_version": __version__,
+    }
+
+
+def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> TrainResult:
+    """Train a DON as configured; see the module docstring for what a run writes."""
+    validate_method(config.method)
+    if config.steps < 1:
+        raise DonGymError(f"steps must be >= 1, got {config.steps}")
+    out = Path(config.out)
+    device = _device(config.device)
+    torch.manual_seed(config.seed)
+
+    if is_supervised(config.method):
+        dataset: Any = SupervisedFrames(config.data, variant=SUPERVISED_TARGET_VARIANT[config.method])
+    else:
+        dataset = CorrespondencePairs(config.data, depth_source=config.depth_source, seed=config.seed)
+    info = dataset.data.info
+    intrinsics = dataset.data.scenes[0].intrinsics
+    image_size = (intrinsics.width, intrinsics.height)
+
+    model = DenseObjectNet(config.arch, int(info["descriptor_dim"]), pretrained_path=config.pretrained_path).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate(), weight_decay=config.weight_decay)
+    scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=config.lr_decay_every, gamma=config.lr_decay)
+    augment_config = AugmentConfig(**config.augment)
+
+    start_step = 0
+    rows: list[dict[str, Any]] = []
+    state_path = out / TRAIN_STATE
+    if resume and state_path.is_file():
+        saved_config = json.loads((out / RUN_CONFIG).read_text())
+        if saved_config != json.loads(json.dumps(asdict(config))):
+            raise DonGymError(f"{out}: --resume with a different configuration than the saved {RUN_CONFIG}")
+        state = torch.load(state_path, map_location=device, weights_only=True)
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        start_step = int(state["step"])
+        rows = _read_loss_rows(out / LOSS_CSV, start_step)
+    elif out.exists() and (out / RUN_CONFIG).exists() and not resume:
+        raise DonGymError(f"{out}: already holds a training run; pass --resume to continue it or choose a new --out")
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out / RUN_CONFIG, json.dumps(asdict(config), indent=1) + "\n")
+
+    def save_state(step: int) -> None:
+        with atomic_path(state_path) as tmp:
+            torch.save(
+                {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "step": step},
+                tmp,
+            )
+        _write_loss_csv(out / LOSS_CSV, rows)
+
+    model.train()
+    images_seen = 0
+    start_time = time.perf_counter()
+    bar = tqdm(range(start_step, config.steps), initial=start_step, total=config.steps, desc=config.method, unit="step", disable=not progress)
+    for step in bar:
+        generator = _step_generator(config.seed, step)
+        index_rng = np.random.default_rng([config.seed, step])
+        if is_supervised(config.method):
+            items = [dataset[int(i)] for i in index_rng.integers(len(dataset), size=config.batch_size)]
+            rgb = torch.stack([it["rgb"] for it in items]).to(device)
+            target = torch.stack([it["target"] for it in items]).to(device)
+            mask = torch.stack([it["object_mask"] for it in items]).to(device)
+            pred = model(augment(rgb, mask, generator, augment_config))
+            loss = supervised_l2_loss(pred, target, mask)
+            stats: dict[str, float] = {}
+        else:
+            items = [dataset[step * config.batch_size + k] for k in range(config.batch_size)]
+            rgb_a = torch.stack([it["rgb_a"] for it in items]).to(device)
+            rgb_b = torch.stack([it["rgb_b"] for it in items]).to(device)
+            mask_a = torch.stack([it["object_mask_a"] for it in items]).to(device)
+            mask_b = torch.stack([it["object_mask_b"] for it in items]).to(device)
+            both = model(torch.cat([augment(rgb_a, mask_a, generator, augment_config), augment(rgb_b, mask_b, generator, augment_config)]))
+            desc_a, desc_b = both[: len(items)], both[len(items) :]
+            loss, stats = batch_contrastive_loss(
+                desc_a, desc_b, [it["correspondences"] for it in items], config.object_margin, config.background_margin
+            )
+        if not torch.isfinite(loss):
+            raise RuntimeError(f"loss became {loss.item()} at step {step}; lower --lr")
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        scheduler.step()
+        images_seen += config.batch_size * (1 if is_supervised(config.method) else 2)
+        rate = images_seen / (time.perf_counter() - start_time)
+        rows.append({"step": step + 1, "loss": f"{loss.item():.6g}", "lr": f"{scheduler.get_last_lr()[0]:.3g}", **{k: f"{v:.6g}" for k, v in stats.items()}})
+        bar.set_postfix(loss=f"{loss.item():.4f}", img_s=f"{rate:.1f}")
+        done = step + 1
+        if done % config.checkpoint_every == 0 or done == config.steps:
+            save_checkpoint(out / "checkpoints" / f"step_{done:06d}.safetensors", model, checkpoint_metadata(config, info, image_size, done))
+            save_state(done)
+            plot_loss_curve(rows, out / LOSS_PNG, f"{config.method} on {info['object']} ({config.arch})")
+    bar.close()
+    seconds = time.perf_counter() - start_time
+    save_checkpoint(out / FINAL_MODEL, model, checkpoint_metadata(config, info, image_size, config.steps))
+    save_state(config.steps)
+    plot_loss_curve(rows, out / LOSS_PNG, f"{config.method} on {info['object']} ({config.arch})")
+    final_loss = float(np.mean([float(r["loss"]) for r in rows[-max(1, len(rows) // 20) :]]))
+    return TrainResult(out / FINAL_MODEL, final_loss, config.steps, seconds, images_seen / max(seconds, 1e-9))
+
+
+def load_trained(path: str | Path, **expect: Any) -> tuple[DenseObjectNet, dict[str, Any]]:
+    """Load a run's model (a run directory or a checkpoint file), checking ``expect`` fields."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / FINAL_MODEL
+    return load_checkpoint(path, **expect)
