@@ -58,7 +58,11 @@ def record_section(name: str, title: str, body_markdown: str, path: Path = RESUL
         f"- Command: `{command_line()}`\n- Machine: {machine_description()}\n- Date: {date}\n\n"
         f"{body_markdown.strip()}\n<!-- end {name} -->\n"
     )
-    text = path.read_text() if path.exists() else "# Benchmark results\n\nEvery figure below was written by the script named in its section.\n\n"
+    text = (
+        path.read_text()
+        if path.exists()
+        else "# Benchmark results\n\nEvery figure below was written by the script named in its section.\n\n"
+    )
     pattern = re.compile(rf"<!-- begin {re.escape(name)} -->.*?<!-- end {re.escape(name)} -->\n?", re.S)
     text = pattern.sub(lambda _: section, text) if pattern.search(text) else text.rstrip("\n") + "\n\n" + section
     tmp = path.with_suffix(".md.partial")

@@ -67,7 +67,9 @@ class DatasetConfig:
 
     def validate(self) -> None:
         if self.scenes < 1 or self.frames_per_scene < 2:
-            raise DatasetError(f"need at least 1 scene and 2 frames per scene, got {self.scenes} x {self.frames_per_scene}")
+            raise DatasetError(
+                f"need at least 1 scene and 2 frames per scene, got {self.scenes} x {self.frames_per_scene}"
+            )
         width, height = self.image_size
         if not (16 <= width <= 1280 and 16 <= height <= 960):
             raise DatasetError(f"image size {width}x{height} is out of range; expected 16x16 to 1280x960")
@@ -123,7 +125,11 @@ def prepare_dataset_dir(out_dir: Path, config: DatasetConfig, overwrite: bool) -
     field_path = out_dir / FIELD_FILE
     if info_path.is_file():
         existing = read_json(info_path)
-        field = DescriptorField.load(field_path) if field_path.is_file() else embed(model, dim=config.descriptor_dim, symmetric=config.symmetric)
+        field = (
+            DescriptorField.load(field_path)
+            if field_path.is_file()
+            else embed(model, dim=config.descriptor_dim, symmetric=config.symmetric)
+        )
         check_dataset_identity(existing, _dataset_info(config, model, field), out_dir)
     else:
         if out_dir.exists() and any(out_dir.iterdir()):
@@ -218,7 +224,7 @@ class SceneWriter:
             object_radius_m=object_radius,
             table_height_m=scene.table_height_m,
         )
-        for f, (depth, mask) in enumerate(zip(depths, masks)):
+        for f, (depth, mask) in enumerate(zip(depths, masks, strict=True)):
             write_frame(path, f, {"depth_fused": depth, "mask_fused": mask}, self.config.descriptor_dim)
 
     def close(self) -> None:
@@ -272,7 +278,9 @@ def build_dataset(
         else:
             context = mp.get_context("spawn")
             with context.Pool(
-                min(workers, len(todo)), initializer=_worker_init, initargs=(config, str(out_dir), str(out_dir / FIELD_FILE))
+                min(workers, len(todo)),
+                initializer=_worker_init,
+                initargs=(config, str(out_dir), str(out_dir / FIELD_FILE)),
             ) as pool:
                 for n in pool.imap_unordered(_worker_write, todo):
                     frames += n

@@ -231,7 +231,9 @@ class DONDataset:
                 f"({FORMAT_VERSION}); upgrade don_gym"
             )
         self.descriptor_dim = int(self.info["descriptor_dim"])
-        self.scenes = [self._read_scene(p) for p in sorted((self.root / "scenes").glob("scene_*")) if (p / SCENE_FILE).is_file()]
+        self.scenes = [
+            self._read_scene(p) for p in sorted((self.root / "scenes").glob("scene_*")) if (p / SCENE_FILE).is_file()
+        ]
         if not self.scenes:
             raise DatasetError(f"{self.root}: no complete scene; run don-gym build-dataset to finish it")
 

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 import yaml
 
-from don_gym.dataset import DONDataset, encode_depth_mm, frame_path
+from don_gym.dataset import DONDataset, frame_path
 from don_gym.errors import DatasetError
 from don_gym.geometry import pose_from_transform
 from don_gym.io import atomic_path, write_text_atomic
@@ -84,4 +84,3 @@ def export_scene_pdc(dataset: DONDataset, scene: int, out_dir: str | Path) -> Pa
     write_text_atomic(images / "pose_data.yaml", yaml.safe_dump(poses, sort_keys=True))
     write_text_atomic(images / "camera_info.yaml", yaml.safe_dump(camera_info, sort_keys=False))
     return processed.parent
-

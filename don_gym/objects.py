@@ -142,7 +142,7 @@ def _resample_profile(points: np.ndarray, spacing_m: float) -> np.ndarray:
     sampling of the profile keeps triangles close to the size of the angular sections.
     """
     out = [points[0]]
-    for start, end in zip(points[:-1], points[1:]):
+    for start, end in zip(points[:-1], points[1:], strict=True):
         count = max(1, int(np.ceil(np.linalg.norm(end - start) / spacing_m)))
         for k in range(1, count + 1):
             out.append(start + (end - start) * k / count)
@@ -293,7 +293,9 @@ def load_object(
 
     path = Path(name_or_path).expanduser()
     if not path.suffix and not path.exists():
-        raise MeshError(f"object {key!r} is neither a built-in ({', '.join(builtin_names())}) nor an existing mesh file")
+        raise MeshError(
+            f"object {key!r} is neither a built-in ({', '.join(builtin_names())}) nor an existing mesh file"
+        )
     if not path.is_file():
         raise MeshError(f"mesh file {str(path)!r} does not exist")
     try:

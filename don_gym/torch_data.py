@@ -135,6 +135,8 @@ class CorrespondencePairs(Dataset):
 
 def collate_pairs(items: list[dict]) -> dict:
     """Stack images; keep per-pair correspondences (different counts) as a list."""
-    out = {key: torch.stack([item[key] for item in items]) for key in ("rgb_a", "rgb_b", "object_mask_a", "object_mask_b")}
+    out = {
+        key: torch.stack([item[key] for item in items]) for key in ("rgb_a", "rgb_b", "object_mask_a", "object_mask_b")
+    }
     out["correspondences"] = [item["correspondences"] for item in items]
     return out

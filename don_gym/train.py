@@ -147,7 +147,9 @@ def plot_loss_curve(rows: list[dict[str, Any]], path: Path, title: str) -> None:
     plt.close(fig)
 
 
-def checkpoint_metadata(config: TrainConfig, dataset_info: dict[str, Any], image_size: tuple[int, int], step: int) -> dict[str, Any]:
+def checkpoint_metadata(
+    config: TrainConfig, dataset_info: dict[str, Any], image_size: tuple[int, int], step: int
+) -> dict[str, Any]:
     return {
         "method": config.method,
         "arch": config.arch,
@@ -208,7 +210,12 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> T
     def save_state(step: int) -> None:
         with atomic_path(state_path) as tmp:
             torch.save(
-                {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "step": step},
+                {
+                    "model": model.state_dict(),
+                    "optimizer": optimizer.state_dict(),
+                    "scheduler": scheduler.state_dict(),
+                    "step": step,
+                },
                 tmp,
             )
         _write_loss_csv(out / LOSS_CSV, rows)
@@ -216,7 +223,14 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> T
     model.train()
     images_seen = 0
     start_time = time.perf_counter()
-    bar = tqdm(range(start_step, config.steps), initial=start_step, total=config.steps, desc=config.method, unit="step", disable=not progress)
+    bar = tqdm(
+        range(start_step, config.steps),
+        initial=start_step,
+        total=config.steps,
+        desc=config.method,
+        unit="step",
+        disable=not progress,
+    )
     for step in bar:
         generator = _step_generator(config.seed, step)
         index_rng = np.random.default_rng([config.seed, step])
@@ -234,7 +248,14 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> T
             rgb_b = torch.stack([it["rgb_b"] for it in items]).to(device)
             mask_a = torch.stack([it["object_mask_a"] for it in items]).to(device)
             mask_b = torch.stack([it["object_mask_b"] for it in items]).to(device)
-            both = model(torch.cat([augment(rgb_a, mask_a, generator, augment_config), augment(rgb_b, mask_b, generator, augment_config)]))
+            both = model(
+                torch.cat(
+                    [
+                        augment(rgb_a, mask_a, generator, augment_config),
+                        augment(rgb_b, mask_b, generator, augment_config),
+                    ]
+                )
+            )
             desc_a, desc_b = both[: len(items)], both[len(items) :]
             loss, stats = batch_contrastive_loss(
                 desc_a, desc_b, [it["correspondences"] for it in items], config.object_margin, config.background_margin
@@ -247,11 +268,22 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> T
         scheduler.step()
         images_seen += config.batch_size * (1 if is_supervised(config.method) else 2)
         rate = images_seen / (time.perf_counter() - start_time)
-        rows.append({"step": step + 1, "loss": f"{loss.item():.6g}", "lr": f"{scheduler.get_last_lr()[0]:.3g}", **{k: f"{v:.6g}" for k, v in stats.items()}})
+        rows.append(
+            {
+                "step": step + 1,
+                "loss": f"{loss.item():.6g}",
+                "lr": f"{scheduler.get_last_lr()[0]:.3g}",
+                **{k: f"{v:.6g}" for k, v in stats.items()},
+            }
+        )
         bar.set_postfix(loss=f"{loss.item():.4f}", img_s=f"{rate:.1f}")
         done = step + 1
         if done % config.checkpoint_every == 0 or done == config.steps:
-            save_checkpoint(out / "checkpoints" / f"step_{done:06d}.safetensors", model, checkpoint_metadata(config, info, image_size, done))
+            save_checkpoint(
+                out / "checkpoints" / f"step_{done:06d}.safetensors",
+                model,
+                checkpoint_metadata(config, info, image_size, done),
+            )
             save_state(done)
             plot_loss_curve(rows, out / LOSS_PNG, f"{config.method} on {info['object']} ({config.arch})")
     bar.close()

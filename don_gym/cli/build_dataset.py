@@ -26,7 +26,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     parser.add_argument("--object", default="toolcap", help="built-in name (toolcap, shaft) or a mesh file")
-    parser.add_argument("--object-scale", type=float, default=None, help="mesh file units to metres (e.g. 0.001 for mm)")
+    parser.add_argument(
+        "--object-scale", type=float, default=None, help="mesh file units to metres (e.g. 0.001 for mm)"
+    )
     parser.add_argument("--scenes", type=int, default=4, help="number of scenes (object poses)")
     parser.add_argument("--frames", type=int, default=24, help="camera frames per scene")
     parser.add_argument("--size", type=_size, default=(320, 240), help="image size WIDTHxHEIGHT in pixels")
@@ -59,7 +61,9 @@ def run(args: argparse.Namespace) -> int:
         symmetric=not args.no_symmetry,
         fuse_depth=not args.no_fusion,
     )
-    report = build_dataset(config, args.out, workers=args.workers, shard=parse_shard(args.shard), overwrite=args.overwrite)
+    report = build_dataset(
+        config, args.out, workers=args.workers, shard=parse_shard(args.shard), overwrite=args.overwrite
+    )
     print(
         f"{args.out}: wrote {report.scenes_written} scenes ({report.frames_written} frames, "
         f"{report.frames_per_second:.1f} frames/s), skipped {report.scenes_skipped} finished scenes"

@@ -25,12 +25,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--steps", type=int, default=2000, help="optimisation steps")
     parser.add_argument("--arch", default="resnet-lite", help="network: resnet-lite (CPU default), resnet18, resnet34")
     parser.add_argument("--batch-size", type=int, default=4, help="images (supervised) or image pairs per step")
-    parser.add_argument("--lr", type=float, default=None, help="Adam learning rate (default: 1e-3 resnet-lite, 1e-4 else)")
+    parser.add_argument(
+        "--lr", type=float, default=None, help="Adam learning rate (default: 1e-3 resnet-lite, 1e-4 else)"
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed for weights, data order and augmentation")
     parser.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints")
     parser.add_argument("--pretrained", default=None, help="local ImageNet weights (torchvision ResNet layout)")
-    parser.add_argument("--depth-source", default="fused", choices=["fused", "sensor", "ideal"],
-                        help="depth for self-supervised correspondences (fused = the original pipeline)")
+    parser.add_argument(
+        "--depth-source",
+        default="fused",
+        choices=["fused", "sensor", "ideal"],
+        help="depth for self-supervised correspondences (fused = the original pipeline)",
+    )
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out")
     parser.set_defaults(run=run)
