@@ -313,7 +313,13 @@ class TSDFVolume:
         if not 0 < step_fraction <= 0.9:
             raise DonGymError(f"step_fraction must be in (0, 0.9], got {step_fraction}")
         height, width = intrinsics.height, intrinsics.width
-        v, u = np.mgrid[0:height, 0:width]
+        # Only pixels inside the volume's projected bounding box can see the fused surface;
+        # a small volume (one object) then costs a fraction of the image.
+        u0, u1, v0, v1 = self._projected_box(intrinsics, T_world_camera)
+        if u0 > u1 or v0 > v1:
+            return np.zeros((height, width), dtype=np.float32)
+        v, u = np.mgrid[v0 : v1 + 1, u0 : u1 + 1]
+        box_height, box_width = v.shape
         rays_camera = pixel_rays(intrinsics, np.stack([u.ravel(), v.ravel()], axis=1))
         # Camera-frame rays have z = 1, so the ray parameter t is the z-depth. Positions are
         # in padded grid units: voxel (i, j, k) has its centre at (i + 1, j + 1, k + 1).
@@ -336,7 +342,7 @@ class TSDFVolume:
             )
             t_exit = np.minimum(t_exit, np.where(parallel, np.inf if inside_slab else -np.inf, np.maximum(t_lo, t_hi)))
 
-        depth = np.zeros(height * width)
+        depth = np.zeros(box_height * box_width)
         rays = np.flatnonzero(t_exit > t_enter)
         rays, t_start = self._skip_empty_space(rays, origin_grid, dirs_grid, voxels_per_t, t_enter, t_exit)
 
@@ -368,7 +374,23 @@ class TSDFVolume:
             k0 += _MARCH_BLOCK_STEPS
             still = ~hit & (t_start + k0 * step_t[rays] <= t_stop[rays])
             rays, t_start, previous = rays[still], t_start[still], values[still, -1]
-        return depth.reshape(height, width).astype(np.float32)
+        image = np.zeros((height, width), dtype=np.float32)
+        image[v0 : v1 + 1, u0 : u1 + 1] = depth.reshape(box_height, box_width)
+        return image
+
+    def _projected_box(self, intrinsics: CameraIntrinsics, T_world_camera: np.ndarray) -> tuple[int, int, int, int]:
+        """Inclusive pixel box ``(u0, u1, v0, v1)`` covering the volume's projection, clipped
+        to the image (empty when u0 > u1); the whole image when the volume reaches behind the camera."""
+        lo, hi = self.origin, self.bounds_max
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        corners_camera = transform_points(invert_transform(T_world_camera), corners)
+        if np.any(corners_camera[:, 2] <= 1e-6):
+            return 0, intrinsics.width - 1, 0, intrinsics.height - 1
+        u = intrinsics.fx * corners_camera[:, 0] / corners_camera[:, 2] + intrinsics.cx
+        v = intrinsics.fy * corners_camera[:, 1] / corners_camera[:, 2] + intrinsics.cy
+        u0, u1 = max(int(np.floor(u.min())) - 1, 0), min(int(np.ceil(u.max())) + 1, intrinsics.width - 1)
+        v0, v1 = max(int(np.floor(v.min())) - 1, 0), min(int(np.ceil(v.max())) + 1, intrinsics.height - 1)
+        return u0, u1, v0, v1
 
     def _skip_empty_space(
         self,

@@ -47,8 +47,6 @@ LOOK_AT_OFFSET_M = 0.06
 #: A pose is used when the arm reaches it within these tolerances.
 REACH_POSITION_TOLERANCE_M = 0.01
 REACH_ROTATION_TOLERANCE_RAD = np.deg2rad(5.0)
-#: Physics steps that let a freshly placed object come to rest before recording.
-SETTLE_STEPS = 150
 #: Height of the floor under the table (m), seen past the table's edges.
 FLOOR_Z_M = -0.75
 #: Rounds of IK re-solving from the previous solution.
@@ -185,6 +183,10 @@ class SceneRecorder:
         T_world_hand = T_world_camera_wanted @ invert_transform(T_HAND_CAMERA)
         position = T_world_hand[:3, 3]
         quat = Rotation.from_matrix(T_world_hand[:3, :3]).as_quat()
+        # Start every solve from the home pose: a failed solve can leave the arm folded in a
+        # configuration from which PyBullet's IK never recovers.
+        for joint, angle in zip(ARM_JOINTS, ARM_HOME_RAD, strict=True):
+            client.resetJointState(self.robot.body_id, joint, float(angle))
         lower = [*ARM_LOWER_RAD, 0.0, 0.0]
         upper = [*ARM_UPPER_RAD, 0.04, 0.04]
         # PyBullet's IK linearises at the current joints; re-solving from each solution converges.
@@ -207,7 +209,8 @@ class SceneRecorder:
             T_world_camera = self.robot.camera_pose()
             position_error = np.linalg.norm(T_world_camera[:3, 3] - T_world_camera_wanted[:3, 3])
             rotation_error = rotation_angle_rad(T_world_camera[:3, :3], T_world_camera_wanted[:3, :3])
-            if position_error < 0.1 * REACH_POSITION_TOLERANCE_M and rotation_error < 0.1 * REACH_ROTATION_TOLERANCE_RAD:
+            converged = position_error < 0.1 * REACH_POSITION_TOLERANCE_M
+            if converged and rotation_error < 0.1 * REACH_ROTATION_TOLERANCE_RAD:
                 break
         if position_error > REACH_POSITION_TOLERANCE_M or rotation_error > REACH_ROTATION_TOLERANCE_RAD:
             return None
@@ -237,7 +240,7 @@ class SceneRecorder:
         background = self._randomise_background(rng)
         if T_world_object is None:
             self.task.place_part(*self.task.sample_pose(rng))
-            self.task.settle(SETTLE_STEPS)
+            self.task.settle()
         else:
             self.task.part.set_pose(np.asarray(T_world_object, dtype=np.float64))
         T_world_object = self.task.part.T_world_object

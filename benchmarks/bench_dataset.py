@@ -1,0 +1,113 @@
+"""Dataset-building speed: whole builds, and target rendering next to RGB rendering.
+
+Measures, in one run:
+
+1. Frames per second of a whole ``build-dataset`` (record, sensor model, targets, TSDF
+   fusion, PNG writes) with 1 worker (the baseline) and with 2 workers; target: at least
+   15 frames/s with 2 workers at 320x240 on 2 cores.
+2. Per frame, the time to render the supervised descriptor target (ray casting + edge
+   blending) next to the time PyBullet takes to render the RGB-D image of the same frame;
+   target: at most 10% of it.
+
+Records a section of benchmarks/RESULTS.md. ``--quick`` runs a smaller build.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _results import record_section  # noqa: E402
+
+from don_gym.build import DatasetConfig, build_dataset  # noqa: E402
+from don_gym.descriptors import embed  # noqa: E402
+from don_gym.geometry import invert_transform  # noqa: E402
+from don_gym.objects import load_object  # noqa: E402
+from don_gym.render import DescriptorRenderer, make_target  # noqa: E402
+from don_gym.sim.camera import render_camera  # noqa: E402
+from don_gym.sim.recorder import SceneRecorder  # noqa: E402
+
+
+def time_builds(config: DatasetConfig, worker_counts: list[int]) -> dict[int, float]:
+    rates = {}
+    for workers in worker_counts:
+        with tempfile.TemporaryDirectory(prefix="don_gym_bench_") as tmp:
+            report = build_dataset(config, Path(tmp) / "data", workers=workers, progress=False)
+        rates[workers] = report.frames_per_second
+        print(
+            f"build with {workers} worker(s): {report.frames_written} frames in {report.seconds:.1f} s "
+            f"= {report.frames_per_second:.1f} frames/s"
+        )
+    return rates
+
+
+def time_targets(object_name: str, size: tuple[int, int], frames: int, seed: int) -> tuple[float, float, float]:
+    """Median ms per frame: RGB-D render, target render, target render + edge blending."""
+    model = load_object(object_name)
+    field = embed(model)
+    renderer = DescriptorRenderer(model.mesh, field.vertex_descriptors, field.background)
+    with SceneRecorder(model, size, sensor="ideal") as recorder:
+        scene = recorder.record(seed=seed, num_frames=frames)
+        rgb_ms, target_ms, edge_ms = [], [], []
+        for frame in scene.frames:
+            start = time.perf_counter()
+            render_camera(recorder.sim.client, scene.intrinsics, frame.T_world_camera, renderer=recorder.renderer)
+            rgb_ms.append(1e3 * (time.perf_counter() - start))
+            T_camera_object = invert_transform(frame.T_world_camera_reported) @ scene.T_world_object
+            start = time.perf_counter()
+            rendered = renderer.render(scene.intrinsics, T_camera_object, visible_mask=frame.object_mask)
+            target_ms.append(1e3 * (time.perf_counter() - start))
+            make_target("edge", rendered.descriptor_image, rendered.object_mask, field.background)
+            edge_ms.append(1e3 * (time.perf_counter() - start))
+    return float(np.median(rgb_ms)), float(np.median(target_ms)), float(np.median(edge_ms))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scenes", type=int, default=6, help="scenes per build")
+    parser.add_argument("--frames", type=int, default=24, help="frames per scene")
+    parser.add_argument("--size", default="320x240", help="image size WIDTHxHEIGHT")
+    parser.add_argument("--sensor", default="d435")
+    parser.add_argument("--quick", action="store_true", help="2 scenes of 12 frames")
+    parser.add_argument("--no-record", action="store_true", help="print only, do not update RESULTS.md")
+    args = parser.parse_args()
+    if args.quick:
+        args.scenes, args.frames = 2, 12
+    size = tuple(int(v) for v in args.size.split("x"))
+    config = DatasetConfig(scenes=args.scenes, frames_per_scene=args.frames, image_size=size, sensor=args.sensor)
+    rates = time_builds(config, [1, 2])
+    rgb_ms, target_ms, edge_ms = time_targets("toolcap", size, frames=24, seed=3)
+    ratio = target_ms / rgb_ms
+    body = f"""Toolcap, {args.scenes} scenes x {args.frames} frames at {size[0]}x{size[1]},
+sensor `{args.sensor}`, TinyRenderer,
+with TSDF fusion. Baseline: the same build with 1 worker.
+
+| build | frames/s | vs 1 worker |
+|---|---|---|
+| 1 worker | {rates[1]:.1f} | 1.00x |
+| 2 workers | {rates[2]:.1f} | {rates[2] / rates[1]:.2f}x |
+
+Target: >= 15 frames/s with 2 workers: {"met" if rates[2] >= 15 else "**not met**"}.
+
+Per frame (median over 24 frames of one scene, {size[0]}x{size[1]}):
+
+| step | ms per frame | vs RGB-D render |
+|---|---|---|
+| PyBullet RGB-D render (TinyRenderer), baseline | {rgb_ms:.1f} | 1.00 |
+| descriptor target (Embree ray casting, visible pixels) | {target_ms:.2f} | {ratio:.3f} |
+| descriptor target + edge blending | {edge_ms:.2f} | {edge_ms / rgb_ms:.3f} |
+
+Target: target rendering <= 10% of the RGB render: {"met" if ratio <= 0.10 else "**not met**"}."""
+    print(body)
+    if not args.no_record:
+        record_section("dataset", "Dataset building (bench_dataset.py)", body)
+
+
+if __name__ == "__main__":
+    main()
