@@ -296,6 +296,8 @@ def load_object(
         raise MeshError(
             f"object {key!r} is neither a built-in ({', '.join(builtin_names())}) nor an existing mesh file"
         )
+    if path.is_dir():
+        raise MeshError(f"mesh file {str(path)!r} is a directory; expected a mesh file (STL, OBJ, PLY, OFF, GLB)")
     if not path.is_file():
         raise MeshError(f"mesh file {str(path)!r} does not exist")
     try:

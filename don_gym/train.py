@@ -35,9 +35,8 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from don_gym import __version__
 from don_gym.augment import AugmentConfig, augment
-from don_gym.checkpoints import load_checkpoint, save_checkpoint
+from don_gym.checkpoints import CheckpointMetadata, load_checkpoint, save_checkpoint
 from don_gym.errors import DonGymError
 from don_gym.io import atomic_path, write_text_atomic
 from don_gym.losses import batch_contrastive_loss, supervised_l2_loss
@@ -50,12 +49,15 @@ LOSS_CSV = "losses.csv"
 LOSS_PNG = "loss_curve.png"
 TRAIN_STATE = "train_state.pt"
 FINAL_MODEL = "model.safetensors"
+#: Settings that may differ when resuming a run.
+RESUMABLE_CHANGES = ("steps", "checkpoint_every", "device")
 
 
 @dataclass(frozen=True)
 class TrainConfig:
     """One training run. ``lr`` None picks 1e-4 (paper) for ImageNet-layout ResNets and
-    1e-3 for the from-scratch ``resnet-lite``."""
+    1e-3 for the from-scratch ``resnet-lite``. ``crop_size`` (width, height) trains on
+    object-centred random crops (None: whole frames); the network still runs on whole frames."""
 
     method: str
     data: str
@@ -74,6 +76,7 @@ class TrainConfig:
     object_margin: float = 0.5
     background_margin: float = 2.5
     device: str = "auto"
+    crop_size: tuple[int, int] | None = (160, 120)
     augment: dict[str, float] = field(default_factory=lambda: asdict(AugmentConfig()))
 
     def learning_rate(self) -> float:
@@ -149,22 +152,28 @@ def plot_loss_curve(rows: list[dict[str, Any]], path: Path, title: str) -> None:
 
 def checkpoint_metadata(
     config: TrainConfig, dataset_info: dict[str, Any], image_size: tuple[int, int], step: int
-) -> dict[str, Any]:
-    return {
-        "method": config.method,
-        "arch": config.arch,
-        "descriptor_dim": int(dataset_info["descriptor_dim"]),
-        "image_size": list(image_size),
-        "object": dataset_info["object"],
-        "mesh_hash": dataset_info["mesh_hash"],
-        "descriptor_field_hash": dataset_info["descriptor_field_hash"],
-        "background_descriptor": [float(v) for v in dataset_info.get("background_descriptor", [])],
-        "renderer": dataset_info["renderer"],
-        "sensor": dataset_info["sensor"],
-        "training_steps": step,
-        "seed": config.seed,
-        "don_gym_version": __version__,
-    }
+) -> CheckpointMetadata:
+    supervised = is_supervised(config.method)
+    return CheckpointMetadata(
+        method=config.method,
+        object_name=dataset_info["object"],
+        object_mesh_hash=dataset_info["mesh_hash"],
+        image_size=tuple(image_size),
+        descriptor_field_hash=dataset_info["descriptor_field_hash"] if supervised else "",
+        background_descriptor=tuple(float(v) for v in dataset_info["background_descriptor"]) if supervised else (),
+        renderer=dataset_info["renderer"],
+        sensor_preset=dataset_info["sensor"],
+        training_steps=step,
+        extra={
+            "seed": config.seed,
+            "lr": config.learning_rate(),
+            "batch_size": config.batch_size,
+            "dataset_scenes": int(dataset_info["scenes"]),
+            "dataset_frames_per_scene": int(dataset_info["frames_per_scene"]),
+            "dataset_seed": int(dataset_info["seed"]),
+            "depth_source": "" if supervised else config.depth_source,
+        },
+    )
 
 
 def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> TrainResult:
@@ -177,9 +186,13 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> T
     torch.manual_seed(config.seed)
 
     if is_supervised(config.method):
-        dataset: Any = SupervisedFrames(config.data, variant=SUPERVISED_TARGET_VARIANT[config.method])
+        dataset: Any = SupervisedFrames(
+            config.data, variant=SUPERVISED_TARGET_VARIANT[config.method], crop_size=config.crop_size, seed=config.seed
+        )
     else:
-        dataset = CorrespondencePairs(config.data, depth_source=config.depth_source, seed=config.seed)
+        dataset = CorrespondencePairs(
+            config.data, depth_source=config.depth_source, seed=config.seed, crop_size=config.crop_size
+        )
     info = dataset.data.info
     intrinsics = dataset.data.scenes[0].intrinsics
     image_size = (intrinsics.width, intrinsics.height)
@@ -194,8 +207,14 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> T
     state_path = out / TRAIN_STATE
     if resume and state_path.is_file():
         saved_config = json.loads((out / RUN_CONFIG).read_text())
-        if saved_config != json.loads(json.dumps(asdict(config))):
-            raise DonGymError(f"{out}: --resume with a different configuration than the saved {RUN_CONFIG}")
+        wanted = json.loads(json.dumps(asdict(config)))
+        # A resumed run may train for longer or checkpoint at another interval; anything else
+        # would silently change what the first steps meant.
+        changed = sorted(k for k in wanted if k not in RESUMABLE_CHANGES and saved_config.get(k) != wanted[k])
+        if changed:
+            raise DonGymError(
+                f"{out}: --resume with a different configuration than the saved {RUN_CONFIG} ({', '.join(changed)})"
+            )
         state = torch.load(state_path, map_location=device, weights_only=True)
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
@@ -235,6 +254,7 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> T
         generator = _step_generator(config.seed, step)
         index_rng = np.random.default_rng([config.seed, step])
         if is_supervised(config.method):
+            dataset.epoch = step
             items = [dataset[int(i)] for i in index_rng.integers(len(dataset), size=config.batch_size)]
             rgb = torch.stack([it["rgb"] for it in items]).to(device)
             target = torch.stack([it["target"] for it in items]).to(device)

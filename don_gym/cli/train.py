@@ -37,9 +37,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         choices=["fused", "sensor", "ideal"],
         help="depth for self-supervised correspondences (fused = the original pipeline)",
     )
+    parser.add_argument(
+        "--crop",
+        default="160x120",
+        help="train on object-centred random crops WIDTHxHEIGHT ('none': whole frames); inference uses whole frames",
+    )
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out")
     parser.set_defaults(run=run)
+
+
+def _crop(text: str) -> tuple[int, int] | None:
+    from don_gym.errors import DonGymError
+
+    if text.lower() == "none":
+        return None
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise DonGymError(f"--crop {text!r}: expected WIDTHxHEIGHT (e.g. 160x120) or none") from None
+    return width, height
 
 
 def run(args: argparse.Namespace) -> int:
@@ -58,6 +75,7 @@ def run(args: argparse.Namespace) -> int:
         pretrained_path=args.pretrained,
         depth_source=args.depth_source,
         device=args.device,
+        crop_size=_crop(args.crop),
     )
     result = train(config, resume=args.resume)
     print(
