@@ -50,14 +50,16 @@ LOSS_PNG = "loss_curve.png"
 TRAIN_STATE = "train_state.pt"
 FINAL_MODEL = "model.safetensors"
 #: Settings that may differ when resuming a run.
-RESUMABLE_CHANGES = ("steps", "checkpoint_every", "device")
+RESUMABLE_CHANGES = ("steps", "checkpoint_every", "device", "threads")
 
 
 @dataclass(frozen=True)
 class TrainConfig:
     """One training run. ``lr`` None picks 1e-4 (paper) for ImageNet-layout ResNets and
     1e-3 for the from-scratch ``resnet-lite``. ``crop_size`` (width, height) trains on
-    object-centred random crops (None: whole frames); the network still runs on whole frames."""
+    object-centred random crops (None: whole frames); the network still runs on whole frames.
+    ``threads`` sets torch's CPU threads (None: torch's default); on a machine whose cores
+    are shared with other work, 1 thread avoids OpenMP stalls that can slow a step 10x."""
 
     method: str
     data: str
@@ -77,6 +79,7 @@ class TrainConfig:
     background_margin: float = 2.5
     device: str = "auto"
     crop_size: tuple[int, int] | None = (160, 120)
+    threads: int | None = None
     augment: dict[str, float] = field(default_factory=lambda: asdict(AugmentConfig()))
 
     def learning_rate(self) -> float:
@@ -183,6 +186,8 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> T
         raise DonGymError(f"steps must be >= 1, got {config.steps}")
     out = Path(config.out)
     device = _device(config.device)
+    if config.threads is not None:
+        torch.set_num_threads(int(config.threads))
     torch.manual_seed(config.seed)
 
     if is_supervised(config.method):

@@ -42,6 +42,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default="160x120",
         help="train on object-centred random crops WIDTHxHEIGHT ('none': whole frames); inference uses whole frames",
     )
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="CPU threads for torch (1 is fastest when other work shares the cores)",
+    )
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out")
     parser.set_defaults(run=run)
@@ -76,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
         depth_source=args.depth_source,
         device=args.device,
         crop_size=_crop(args.crop),
+        threads=args.threads,
     )
     result = train(config, resume=args.resume)
     print(

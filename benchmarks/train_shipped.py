@@ -1,0 +1,98 @@
+"""Reproduce the networks shipped in don_gym/checkpoints from scratch, and record the run.
+
+For each object (toolcap, shaft): build a dataset (scenes x frames at 320x240 with the d435
+sensor preset, seed 0), then train one network per method (supervised-edge,
+supervised-mask, self-supervised; resnet-lite, 160x120 object-centred crops, fixed seed)
+and copy its final weights to ``don_gym/checkpoints/<object>/<method>.safetensors``.
+Records, per network, the training time, images/s and final loss in benchmarks/RESULTS.md.
+
+    python benchmarks/train_shipped.py            # the shipped recipe
+    python benchmarks/train_shipped.py --quick    # a smoke run into a temp dir (no copy)
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _results import record_section  # noqa: E402
+
+from don_gym.build import DatasetConfig, build_dataset  # noqa: E402
+from don_gym.train import TrainConfig, train  # noqa: E402
+from don_gym.zoo import SHIPPED_DIR  # noqa: E402
+
+OBJECTS = ("toolcap", "shaft")
+METHODS = ("supervised-edge", "supervised-mask", "self-supervised")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--work", default="runs/shipped", help="directory for datasets and runs")
+    parser.add_argument("--scenes", type=int, default=12)
+    parser.add_argument("--frames", type=int, default=24)
+    parser.add_argument("--steps", type=int, default=2000)
+    parser.add_argument("--batch-size", type=int, default=4)
+    parser.add_argument("--threads", type=int, default=1, help="torch threads per training (1: see TrainConfig)")
+    parser.add_argument("--objects", nargs="+", default=list(OBJECTS))
+    parser.add_argument("--methods", nargs="+", default=list(METHODS))
+    parser.add_argument("--quick", action="store_true", help="tiny smoke run in a temp dir; copies nothing")
+    args = parser.parse_args()
+    work = Path(tempfile.mkdtemp(prefix="don_gym_shipped_")) if args.quick else Path(args.work)
+    if args.quick:
+        args.scenes, args.frames, args.steps = 2, 6, 20
+    rows = []
+    for object_name in args.objects:
+        data = work / f"data_{object_name}"
+        config = DatasetConfig(
+            object=object_name, scenes=args.scenes, frames_per_scene=args.frames, image_size=(320, 240), sensor="d435"
+        )
+        start = time.perf_counter()
+        report = build_dataset(config, data)
+        print(f"{object_name}: dataset {report.frames_written} new frames in {time.perf_counter() - start:.0f} s")
+        for method in args.methods:
+            run = work / f"run_{object_name}_{method}"
+            result = train(
+                TrainConfig(
+                    method=method,
+                    data=str(data),
+                    out=str(run),
+                    steps=args.steps,
+                    batch_size=args.batch_size,
+                    seed=0,
+                    threads=args.threads,
+                    checkpoint_every=max(1, args.steps // 4),
+                ),
+                resume=True,
+            )
+            size_mb = result.model_path.stat().st_size / 1e6
+            rows.append(
+                f"| {object_name} | {method} | {args.steps} | {result.seconds / 60:.1f} | "
+                f"{result.images_per_second:.1f} | {result.final_loss:.4g} | {size_mb:.1f} |"
+            )
+            if not args.quick:
+                target = SHIPPED_DIR / object_name / f"{method}.safetensors"
+                target.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(result.model_path, target)
+                print(f"shipped {target}")
+    body = f"""Datasets: {args.scenes} scenes x {args.frames} frames, 320x240, sensor `d435`, TinyRenderer, seed 0.
+Training: `resnet-lite`, {args.steps} steps, batch {args.batch_size} (images, or image pairs for
+self-supervised), 160x120 object-centred crops, Adam lr 1e-3 x0.9 every 250 steps, seed 0,
+{args.threads} torch thread(s). Final loss = mean of the last 5% of steps (the two methods' losses
+are on different scales and not comparable with each other).
+
+| object | method | steps | minutes | images/s | final loss | MB |
+|---|---|---|---|---|---|---|
+""" + "\n".join(rows)
+    print(body)
+    if not args.quick:
+        name = "-".join(args.objects)
+        record_section(f"shipped-{name}", f"Shipped networks: {', '.join(args.objects)} (train_shipped.py)", body)
+
+
+if __name__ == "__main__":
+    main()

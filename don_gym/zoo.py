@@ -1,0 +1,59 @@
+"""Ready-trained DONs shipped inside the package, loadable by a short name.
+
+Short names are ``"<object>/<method>"``, e.g. ``"toolcap/supervised-edge"``; the files
+live in ``don_gym/checkpoints/<object>/<method>.safetensors`` and are reproduced from
+scratch by ``benchmarks/train_shipped.py`` (command, seeds, times and final losses in
+``benchmarks/RESULTS.md``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from don_gym.checkpoints import CheckpointMetadata, load_checkpoint
+from don_gym.errors import CheckpointError
+from don_gym.model import DenseObjectNet
+
+SHIPPED_DIR = Path(__file__).resolve().parent / "checkpoints"
+
+
+def shipped_names() -> list[str]:
+    """Short names of the networks in this installation, e.g. ``["shaft/self-supervised", ...]``."""
+    return sorted(f"{p.parent.name}/{p.stem}" for p in SHIPPED_DIR.glob("*/*.safetensors"))
+
+
+def shipped_path(name: str) -> Path:
+    """File of a shipped network; CheckpointError listing the available names otherwise."""
+    path = SHIPPED_DIR / f"{name}.safetensors"
+    if "/" not in name or not path.is_file():
+        available = ", ".join(shipped_names()) or "none (run benchmarks/train_shipped.py)"
+        raise CheckpointError(f"no shipped network named {name!r}; available: {available}")
+    return path
+
+
+def is_checkpoint_reference(name_or_path: str | Path) -> bool:
+    """True for a path to an existing file or a shipped short name."""
+    text = str(name_or_path)
+    return Path(text).is_file() or (SHIPPED_DIR / f"{text}.safetensors").is_file()
+
+
+def load_don(
+    name_or_path: str | Path,
+    expect_object: str | None = None,
+    expect_descriptor_dim: int | None = None,
+    expect_method: str | None = None,
+    map_location: str = "cpu",
+) -> tuple[DenseObjectNet, CheckpointMetadata]:
+    """Load a shipped network by short name, or any checkpoint file, checking expectations.
+
+    Returns ``(model in eval mode, metadata)``; raises CheckpointError naming what differs.
+    """
+    text = str(name_or_path)
+    path = Path(text) if Path(text).is_file() else shipped_path(text)
+    return load_checkpoint(
+        path,
+        expect_object=expect_object,
+        expect_descriptor_dim=expect_descriptor_dim,
+        expect_method=expect_method,
+        map_location=map_location,
+    )
