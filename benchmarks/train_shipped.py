@@ -1,9 +1,9 @@
-"""Reproduce the networks shipped in don_gym/checkpoints from scratch, and record the run.
+"""Reproduce the networks shipped in don_gym/shipped from scratch, and record the run.
 
 For each object (toolcap, shaft): build a dataset (scenes x frames at 320x240 with the d435
 sensor preset, seed 0), then train one network per method (supervised-edge,
 supervised-mask, self-supervised; resnet-lite, 160x120 object-centred crops, fixed seed)
-and copy its final weights to ``don_gym/checkpoints/<object>/<method>.safetensors``.
+and copy its final weights to ``don_gym/shipped/<object>/<method>.safetensors``.
 Records, per network, the training time, images/s and final loss in benchmarks/RESULTS.md.
 
     python benchmarks/train_shipped.py            # the shipped recipe

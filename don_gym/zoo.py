@@ -1,7 +1,7 @@
 """Ready-trained DONs shipped inside the package, loadable by a short name.
 
 Short names are ``"<object>/<method>"``, e.g. ``"toolcap/supervised-edge"``; the files
-live in ``don_gym/checkpoints/<object>/<method>.safetensors`` and are reproduced from
+live in ``don_gym/shipped/<object>/<method>.safetensors`` and are reproduced from
 scratch by ``benchmarks/train_shipped.py`` (command, seeds, times and final losses in
 ``benchmarks/RESULTS.md``).
 """
@@ -14,7 +14,7 @@ from don_gym.checkpoints import CheckpointMetadata, load_checkpoint
 from don_gym.errors import CheckpointError
 from don_gym.model import DenseObjectNet
 
-SHIPPED_DIR = Path(__file__).resolve().parent / "checkpoints"
+SHIPPED_DIR = Path(__file__).resolve().parent / "shipped"
 
 
 def shipped_names() -> list[str]:
