@@ -36,7 +36,7 @@ import torch
 from tqdm.auto import tqdm
 
 from don_gym.augment import AugmentConfig, augment
-from don_gym.checkpoints import CheckpointMetadata, load_checkpoint, save_checkpoint
+from don_gym.checkpoints import CheckpointMetadata, save_checkpoint
 from don_gym.errors import DonGymError
 from don_gym.io import atomic_path, write_text_atomic
 from don_gym.losses import batch_contrastive_loss, supervised_l2_loss
@@ -319,10 +319,3 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> T
     final_loss = float(np.mean([float(r["loss"]) for r in rows[-max(1, len(rows) // 20) :]]))
     return TrainResult(out / FINAL_MODEL, final_loss, config.steps, seconds, images_seen / max(seconds, 1e-9))
 
-
-def load_trained(path: str | Path, **expect: Any) -> tuple[DenseObjectNet, dict[str, Any]]:
-    """Load a run's model (a run directory or a checkpoint file), checking ``expect`` fields."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / FINAL_MODEL
-    return load_checkpoint(path, **expect)

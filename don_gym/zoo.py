@@ -44,11 +44,14 @@ def load_don(
     expect_method: str | None = None,
     map_location: str = "cpu",
 ) -> tuple[DenseObjectNet, CheckpointMetadata]:
-    """Load a shipped network by short name, or any checkpoint file, checking expectations.
+    """Load a shipped network by short name, a checkpoint file or a training run directory
+    (its ``model.safetensors``), checking expectations.
 
     Returns ``(model in eval mode, metadata)``; raises CheckpointError naming what differs.
     """
     text = str(name_or_path)
+    if Path(text).is_dir() and (Path(text) / "model.safetensors").is_file():
+        text = str(Path(text) / "model.safetensors")
     path = Path(text) if Path(text).is_file() else shipped_path(text)
     return load_checkpoint(
         path,
