@@ -1,0 +1,524 @@
+"""Descriptor sources (oracle or a DON), reference descriptors, and the DescriptorObservation wrapper.
+
+A :class:`DescriptorSource` turns one observation (and, for the oracle, its ``info``) into a
+descriptor image (H, W, D) float32:
+
+- :class:`OracleDescriptors` (``model="oracle"``): the object's optimal descriptors
+  (:func:`don_gym.descriptors.embed`, the "geometric" target of the paper) rendered from the
+  TRUE object pose and TRUE camera pose in ``info``, the background descriptor elsewhere. It is
+  the upper bound every learned model is compared with. Object pixels that the observed depth
+  shows to be hidden (observed depth more than ``occlusion_tolerance_m`` in front of the rendered
+  object, e.g. behind the gripper) become background; pixels without depth (holes on the metal
+  part) keep their descriptor, as nothing says they are hidden.
+- :class:`NetworkDescriptors`: a trained :class:`~don_gym.model.DenseObjectNet` run on
+  ``obs["rgb"]``. :func:`load_descriptor_source` loads one by shipped short name
+  (``"toolcap/supervised-edge"``, see :mod:`don_gym.zoo`) or checkpoint path, checking that it
+  was trained for the env's object (and descriptor size).
+
+Reference descriptors (:func:`reference_descriptors_for`): the descriptors a model gives to
+chosen object surface points, which keypoint tracking then looks for. For the oracle and the
+networks trained towards the optimal field (``supervised``, ``supervised-edge``, when their
+recorded field hash matches), they are read from that field. Every other model (the
+self-supervised DON, whose descriptor space is arbitrary; ``supervised-mask``, whose last
+dimension is a view-dependent mask channel; a bare network without metadata) gets them the way
+the original DON does: from a *reference frame* (:class:`ReferenceFrame`, by default the env reset
+at a fixed pose and seed), the model's descriptor image of that frame is sampled at the pixels
+where the surface points are seen (projected with the true poses, kept where the ray-cast object
+depth confirms them visible and not on the object's outline) and the median taken. So any model
+the wrapper accepts works.
+"""
+
+from __future__ import annotations
+
+import copy
+import warnings
+from abc import ABC, abstractmethod
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import gymnasium as gym
+import numpy as np
+import trimesh
+from gymnasium import spaces
+
+from don_gym.checkpoints import CheckpointMetadata
+from don_gym.descriptors import DescriptorField, embed, interpolate_field
+from don_gym.errors import CheckpointError, DonGymError
+from don_gym.geometry import CameraIntrinsics, invert_transform, transform_points
+from don_gym.keypoints import project_visible, sample_descriptors
+from don_gym.model import DenseObjectNet
+from don_gym.objects import ObjectModel
+from don_gym.render import DescriptorRenderer, RenderedTarget
+
+#: Descriptors in observations are clipped to +-this (the observation space's documented bound).
+#: Optimal descriptors lie in [0, 1]; trained networks stay within a few units of that.
+DESCRIPTOR_BOUND = 1000.0
+#: Descriptor dimension of the oracle when nothing else asks for one (the paper's and the shipped nets').
+DEFAULT_ORACLE_DIM = 3
+#: Methods whose networks were trained towards the optimal field itself, so reference descriptors
+#: can be read from the field.
+FIELD_METHODS = ("supervised", "supervised-edge")
+#: Reference frame used when a model needs one and none is given: ``reset(seed, pose_id)``.
+REFERENCE_SEED = 0
+REFERENCE_POSE_ID = 0
+
+_FIELDS: dict[tuple[str, int, bool], DescriptorField] = {}
+
+
+def descriptor_field_for(
+    object_model: ObjectModel, dim: int = DEFAULT_ORACLE_DIM, symmetric: bool = True
+) -> DescriptorField:
+    """The optimal descriptor field of an object, computed once per (mesh, dim, symmetric) in this process."""
+    key = (object_model.mesh_hash, int(dim), bool(symmetric))
+    field = _FIELDS.get(key)
+    if field is None:
+        field = embed(object_model, dim=int(dim), symmetric=symmetric)
+        _FIELDS[key] = field
+    return field
+
+
+def _intrinsics_of(obs: Mapping[str, np.ndarray]) -> CameraIntrinsics:
+    if "camera_intrinsics" not in obs:
+        raise DonGymError("observation has no 'camera_intrinsics'; expected a don_gym env observation")
+    return CameraIntrinsics.from_array(obs["camera_intrinsics"])
+
+
+def _true_T_camera_object(info: Mapping[str, Any] | None) -> np.ndarray:
+    if info is None or "T_world_object" not in info or "T_world_camera" not in info:
+        raise DonGymError(
+            "the oracle needs the true poses in info ('T_world_object', 'T_world_camera'); "
+            "got info keys " + (str(sorted(info)) if info is not None else "None")
+        )
+    T_world_camera = np.asarray(info["T_world_camera"], dtype=np.float64)
+    return invert_transform(T_world_camera) @ np.asarray(info["T_world_object"], dtype=np.float64)
+
+
+class DescriptorSource(ABC):
+    """Something that turns an observation into a descriptor image (H, W, D) float32.
+
+    Attributes:
+        object_model: the object the descriptors describe (None if unknown).
+    """
+
+    object_model: ObjectModel | None
+
+    @property
+    @abstractmethod
+    def method(self) -> str:
+        """``"oracle"``, a checkpoint's training method (:data:`don_gym.methods.METHODS`) or ``"network"``."""
+
+    @property
+    @abstractmethod
+    def descriptor_dim(self) -> int:
+        """D, the number of descriptor channels."""
+
+    @property
+    def needs_info(self) -> bool:
+        """True when :meth:`descriptor_image` needs the step's ``info`` (the oracle's true poses)."""
+        return False
+
+    @property
+    def reference_from_field(self) -> bool:
+        """True when reference descriptors may be read from the optimal field (see the module docstring)."""
+        return False
+
+    @property
+    def field(self) -> DescriptorField | None:
+        """The optimal field this source reproduces, when :attr:`reference_from_field`."""
+        return None
+
+    @abstractmethod
+    def descriptor_image(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> np.ndarray:
+        """(H, W, D) float32 descriptors of the observation's image."""
+
+    def __repr__(self) -> str:
+        name = self.object_model.name if self.object_model is not None else None
+        return f"{type(self).__name__}(method={self.method!r}, descriptor_dim={self.descriptor_dim}, object={name!r})"
+
+
+class OracleDescriptors(DescriptorSource):
+    """Optimal descriptors rendered from the true poses in ``info`` (see the module docstring).
+
+    Args:
+        object_model: the env's object.
+        descriptor_dim: D of the optimal field.
+        occlusion_check: make object pixels that the observed depth shows hidden background.
+        occlusion_tolerance_m: how far in front of the rendered object the observed depth must be
+            to count as hiding it (larger than the depth sensor's noise at 0.5 m).
+    """
+
+    def __init__(
+        self,
+        object_model: ObjectModel,
+        descriptor_dim: int = DEFAULT_ORACLE_DIM,
+        occlusion_check: bool = True,
+        occlusion_tolerance_m: float = 0.01,
+    ) -> None:
+        self.object_model = object_model
+        self._field = descriptor_field_for(object_model, descriptor_dim)
+        self._renderer = DescriptorRenderer(object_model.mesh, self._field.vertex_descriptors, self._field.background)
+        self.occlusion_check = bool(occlusion_check)
+        self.occlusion_tolerance_m = float(occlusion_tolerance_m)
+
+    @property
+    def method(self) -> str:
+        return "oracle"
+
+    @property
+    def descriptor_dim(self) -> int:
+        return self._field.dim
+
+    @property
+    def needs_info(self) -> bool:
+        return True
+
+    @property
+    def reference_from_field(self) -> bool:
+        return True
+
+    @property
+    def field(self) -> DescriptorField:
+        return self._field
+
+    @property
+    def background(self) -> np.ndarray:
+        """(D,) descriptor of pixels off the object."""
+        return self._field.background
+
+    def render(self, intrinsics: CameraIntrinsics, T_camera_object: np.ndarray) -> RenderedTarget:
+        """The unoccluded rendered target of one view."""
+        return self._renderer.render(intrinsics, T_camera_object)
+
+    def descriptor_image(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> np.ndarray:
+        intrinsics = _intrinsics_of(obs)
+        target = self.render(intrinsics, _true_T_camera_object(info))
+        image = target.descriptor_image
+        if self.occlusion_check and "depth" in obs:
+            depth = np.asarray(obs["depth"], dtype=np.float32)
+            hidden = target.object_mask & (depth > 0) & (depth < target.depth_m - self.occlusion_tolerance_m)
+            image[hidden] = self._field.background
+        return image
+
+
+class NetworkDescriptors(DescriptorSource):
+    """A trained DON: ``network.descriptor_image(obs["rgb"])``.
+
+    Args:
+        network: the network (put in eval mode by ``descriptor_image``).
+        metadata: its checkpoint metadata, if it came from a checkpoint (decides how reference
+            descriptors are found and :attr:`method`).
+        object_model: the object it describes (needed for reference descriptors).
+        source: how it was named, for messages.
+    """
+
+    def __init__(
+        self,
+        network: DenseObjectNet,
+        metadata: CheckpointMetadata | None = None,
+        object_model: ObjectModel | None = None,
+        source: str = "network",
+    ) -> None:
+        self.network = network
+        self.metadata = metadata
+        self.object_model = object_model
+        self.source = source
+        self._field: DescriptorField | None = None
+        self._field_checked = False
+
+    @property
+    def method(self) -> str:
+        return self.metadata.method if self.metadata is not None else "network"
+
+    @property
+    def descriptor_dim(self) -> int:
+        return int(self.network.descriptor_dim)
+
+    @property
+    def field(self) -> DescriptorField | None:
+        if not self._field_checked:
+            self._field_checked = True
+            metadata = self.metadata
+            if metadata is not None and self.object_model is not None and metadata.method in FIELD_METHODS:
+                field = descriptor_field_for(self.object_model, self.descriptor_dim)
+                if field.field_hash == metadata.descriptor_field_hash:
+                    self._field = field
+                else:
+                    warnings.warn(
+                        f"{self.source}: trained on descriptor field {metadata.descriptor_field_hash!r} but this "
+                        f"object's field is {field.field_hash!r}; reference descriptors will come from a "
+                        "reference frame instead of the field",
+                        stacklevel=2,
+                    )
+        return self._field
+
+    @property
+    def reference_from_field(self) -> bool:
+        return self.field is not None
+
+    def descriptor_image(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> np.ndarray:
+        if "rgb" not in obs:
+            raise DonGymError("a DON needs obs['rgb']; the env was made without images (image_size=None?)")
+        return self.network.descriptor_image(np.asarray(obs["rgb"]))
+
+
+def _unknown_model_message(name: str) -> str:
+    from don_gym.zoo import shipped_names
+
+    shipped = shipped_names()
+    available = ", ".join(["'oracle'", *(repr(n) for n in shipped)])
+    note = "" if shipped else " (no shipped networks installed yet)"
+    return f"model {name!r} is neither 'oracle', a shipped network nor a checkpoint file; available: {available}{note}"
+
+
+def load_descriptor_source(
+    model: str | Path | DenseObjectNet | DescriptorSource,
+    object_model: ObjectModel,
+    descriptor_dim: int | None = None,
+    occlusion_check: bool = True,
+) -> DescriptorSource:
+    """A :class:`DescriptorSource` for ``object_model`` from what a user passes as ``model``.
+
+    Args:
+        model: ``"oracle"``; a shipped short name (``"toolcap/self-supervised"``) or checkpoint path
+            (loaded with :func:`don_gym.zoo.load_don`, its metadata checked against the object's name
+            and ``descriptor_dim``); a :class:`~don_gym.model.DenseObjectNet`; or a source (checked).
+        object_model: the env's object.
+        descriptor_dim: required D (None: the model's; the oracle then uses 3).
+        occlusion_check: see :class:`OracleDescriptors`.
+
+    Raises:
+        CheckpointError: unknown name (the message lists the available ones), a checkpoint for another
+            object or descriptor size.
+        DonGymError: any other unusable ``model``.
+    """
+    if descriptor_dim is not None and (isinstance(descriptor_dim, bool) or int(descriptor_dim) != descriptor_dim):
+        raise DonGymError(f"descriptor_dim={descriptor_dim!r}: expected a positive integer or None")
+    if isinstance(model, DescriptorSource):
+        source = model
+    elif isinstance(model, DenseObjectNet):
+        source = NetworkDescriptors(model, None, object_model, source=f"network {model.extra_repr()}")
+    elif isinstance(model, (str, Path)):
+        text = str(model)
+        if text == "oracle":
+            return OracleDescriptors(object_model, descriptor_dim or DEFAULT_ORACLE_DIM, occlusion_check)
+        from don_gym.zoo import is_checkpoint_reference, load_don
+
+        if not is_checkpoint_reference(text):
+            raise CheckpointError(_unknown_model_message(text))
+        network, metadata = load_don(text, expect_object=object_model.name, expect_descriptor_dim=descriptor_dim)
+        return NetworkDescriptors(network, metadata, object_model, source=f"checkpoint {text!r}")
+    else:
+        raise DonGymError(
+            f"model={model!r}: expected 'oracle', a shipped network name, a checkpoint path, a DenseObjectNet "
+            "or a DescriptorSource"
+        )
+    if source.object_model is not None and source.object_model.mesh_hash != object_model.mesh_hash:
+        raise DonGymError(
+            f"descriptor source is for object {source.object_model.name!r}, expected {object_model.name!r}"
+        )
+    if descriptor_dim is not None and source.descriptor_dim != descriptor_dim:
+        raise DonGymError(
+            f"descriptor source gives {source.descriptor_dim}-dimensional descriptors, expected {descriptor_dim}"
+        )
+    if source.object_model is None:
+        source.object_model = object_model
+    return source
+
+
+# ------------------------------------------------------------------------------------------------
+# Reference descriptors
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ReferenceFrame:
+    """One observation with its true poses, for reading a model's descriptors of known surface points.
+
+    Attributes:
+        obs: the env observation (``rgb``, ``depth``, ``camera_intrinsics`` needed).
+        info: its info (``T_world_object`` and ``T_world_camera``, the TRUE poses).
+    """
+
+    obs: Mapping[str, np.ndarray]
+    info: Mapping[str, Any]
+
+    @classmethod
+    def from_env(cls, env: gym.Env, seed: int = REFERENCE_SEED, pose_id: int = REFERENCE_POSE_ID) -> ReferenceFrame:
+        """Reset the (unwrapped) env at a fixed seed and pose and keep that frame.
+
+        The env's random generator is put back afterwards, so later unseeded resets go on as
+        they would have (no two envs of a vector env become correlated through this). The env
+        must be reset again before stepping.
+        """
+        base = env.unwrapped
+        saved_rng = copy.deepcopy(base.np_random)
+        try:
+            obs, info = base.reset(seed=seed, options={"pose_id": pose_id})
+        finally:
+            base.np_random = saved_rng
+        return cls({k: np.array(v) for k, v in obs.items()}, dict(info))
+
+
+def closest_surface_points(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Triangle ids (M,) and barycentric coordinates (M, 3) of the mesh points closest to ``points`` (M, 3)."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    closest, _, triangle_ids = trimesh.proximity.closest_point(mesh, points)
+    barycentric = trimesh.triangles.points_to_barycentric(mesh.triangles[triangle_ids], closest)
+    return np.asarray(triangle_ids, dtype=np.int64), np.clip(barycentric, 0.0, 1.0)
+
+
+def field_descriptors(
+    field: DescriptorField, mesh: trimesh.Trimesh, surface_points: Sequence[np.ndarray]
+) -> np.ndarray:
+    """(K, D) mean field descriptor over each of K sets of object-frame surface points ((N_k, 3) each)."""
+    out = []
+    for points in surface_points:
+        triangle_ids, barycentric = closest_surface_points(mesh, points)
+        out.append(interpolate_field(field.vertex_descriptors, mesh.faces, triangle_ids, barycentric).mean(axis=0))
+    return np.asarray(out, dtype=np.float32)
+
+
+def visible_surface_pixels(
+    object_model: ObjectModel,
+    surface_points: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    T_camera_object: np.ndarray,
+    margin_px: int = 1,
+    tolerance_m: float = 0.003,
+) -> np.ndarray:
+    """(M, 2) int pixels (u, v) where object-frame surface points (N, 3) are seen in a view.
+
+    A point counts when the ray-cast object depth at its pixel is within ``tolerance_m`` of its own
+    depth (not hidden by another part of the object) and its pixel is at least ``margin_px`` inside
+    the object's outline (descriptors on the outline mix with the background).
+    """
+    renderer = DescriptorRenderer(
+        object_model.mesh, np.zeros((len(object_model.mesh.vertices), 1), np.float32), np.zeros(1, np.float32)
+    )
+    target = renderer.render(intrinsics, T_camera_object)
+    points_camera = transform_points(T_camera_object, surface_points)
+    uv, visible = project_visible(points_camera, intrinsics, target.depth_m, tolerance_m)
+    if margin_px > 0:
+        size = 2 * int(margin_px) + 1
+        interior = cv2.erode(target.object_mask.astype(np.uint8), np.ones((size, size), np.uint8)).astype(bool)
+        visible[visible] = interior[uv[visible, 1], uv[visible, 0]]
+    return uv[visible]
+
+
+def reference_descriptors_for(
+    source: DescriptorSource,
+    surface_points: Sequence[np.ndarray],
+    reference: ReferenceFrame | None = None,
+    radius_px: int = 1,
+) -> np.ndarray:
+    """The descriptors ``source`` gives to K sets of object-frame surface points: (K, D) float32.
+
+    Each set (N_k, 3) in metres is one keypoint: points that share a descriptor (a ring about a
+    symmetry axis) or a single point. Without ``reference`` and with ``source.reference_from_field``,
+    the mean field descriptor of each set. Otherwise the source's descriptor image of the reference
+    frame, median over a ``radius_px`` window at each visible point's pixel
+    (:func:`visible_surface_pixels`), then the median over the set's points.
+
+    Raises:
+        DonGymError: no reference frame where one is needed, or a set not visible in it.
+    """
+    sets = [np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in surface_points]
+    if reference is None and source.reference_from_field:
+        return field_descriptors(source.field, source.object_model.mesh, sets)
+    if reference is None:
+        raise DonGymError(
+            f"a {source.method!r} model needs a reference frame for its reference descriptors "
+            "(ReferenceFrame.from_env(env)); its descriptor space is not the optimal field"
+        )
+    if source.object_model is None:
+        raise DonGymError("reference descriptors need the source's object_model")
+    image = source.descriptor_image(reference.obs, reference.info)
+    intrinsics = _intrinsics_of(reference.obs)
+    T_camera_object = _true_T_camera_object(reference.info)
+    out = []
+    for k, points in enumerate(sets):
+        pixels = visible_surface_pixels(source.object_model, points, intrinsics, T_camera_object)
+        if len(pixels) == 0:
+            raise DonGymError(
+                f"surface point set {k} ({len(points)} points) is not visible in the reference frame; "
+                "use another reference pose"
+            )
+        out.append(np.median(sample_descriptors(image, pixels, radius_px), axis=0))
+    return np.asarray(out, dtype=np.float32)
+
+
+# ------------------------------------------------------------------------------------------------
+# Wrapper
+# ------------------------------------------------------------------------------------------------
+
+
+def env_object_model(env: gym.Env) -> ObjectModel:
+    """The :class:`ObjectModel` of a don_gym env (``env.unwrapped.model``)."""
+    model = getattr(env.unwrapped, "model", None)
+    if not isinstance(model, ObjectModel):
+        raise DonGymError(
+            f"{type(env.unwrapped).__name__} has no object model (env.unwrapped.model); expected a don_gym env"
+        )
+    return model
+
+
+class DescriptorObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
+    """Adds ``descriptors`` (H, W, D) float32 to every observation, computed from ``rgb``.
+
+    Args:
+        env: a don_gym env with images (``rgb``, ``depth``).
+        model: ``"oracle"``, a shipped network name, a checkpoint path, a DenseObjectNet or a
+            :class:`DescriptorSource` (see :func:`load_descriptor_source`).
+        descriptor_dim: required descriptor size (None: the model's; 3 for the oracle).
+        occlusion_check: see :class:`OracleDescriptors`.
+
+    The observation space gains ``descriptors``: a Box of shape (H, W, D) bounded by
+    ``+-DESCRIPTOR_BOUND`` (values are clipped to it); all other keys are kept. ``reset`` and
+    ``step`` are overridden (not ``observation``) because the oracle needs the step's ``info``. The
+    constructor arguments are recorded (not copied) so that ``env.spec`` can re-create the wrapper.
+    """
+
+    def __init__(
+        self,
+        env: gym.Env,
+        model: str | Path | DenseObjectNet | DescriptorSource = "oracle",
+        descriptor_dim: int | None = None,
+        occlusion_check: bool = True,
+    ) -> None:
+        gym.utils.RecordConstructorArgs.__init__(
+            self, _disable_deepcopy=True, model=model, descriptor_dim=descriptor_dim, occlusion_check=occlusion_check
+        )
+        gym.Wrapper.__init__(self, env)
+        self.object_model = env_object_model(env)
+        self.source = load_descriptor_source(model, self.object_model, descriptor_dim, occlusion_check)
+        space = env.observation_space
+        if not isinstance(space, spaces.Dict) or "rgb" not in space.spaces:
+            raise DonGymError("DescriptorObservation needs an env that observes 'rgb' images (image_size not None)")
+        height, width = space["rgb"].shape[:2]
+        entries = dict(space.spaces)
+        entries["descriptors"] = spaces.Box(
+            -DESCRIPTOR_BOUND, DESCRIPTOR_BOUND, shape=(height, width, self.source.descriptor_dim), dtype=np.float32
+        )
+        self.observation_space = spaces.Dict(entries)
+
+    @property
+    def method(self) -> str:
+        """``"oracle"`` or the checkpoint's training method."""
+        return self.source.method
+
+    def _add_descriptors(self, obs: dict[str, np.ndarray], info: dict[str, Any]) -> dict[str, np.ndarray]:
+        image = self.source.descriptor_image(obs, info)
+        obs = dict(obs)
+        obs["descriptors"] = np.clip(image, -DESCRIPTOR_BOUND, DESCRIPTOR_BOUND).astype(np.float32, copy=False)
+        return obs
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        return self._add_descriptors(obs, info), info
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        return self._add_descriptors(obs, info), reward, terminated, truncated, info
