@@ -1,0 +1,244 @@
+"""The scripted grasp-and-place of ``control="grasp"``: a pre-programmed robot program.
+
+Given the agent's belief (grasp point and yaw of the part's +axis), the robot:
+
+1. moves above the grasp point with the fingers across the believed axis (top-down),
+2. descends, closes the gripper slowly with a limited force and waits for the fingers to stop,
+3. lifts slowly, carries the part above the cradle while turning the hand so that the
+   *believed* +axis ends along the cradle's target direction,
+4. lowers it with a guarded move (stops at the first contact with the cradle, as a
+   force-guarded industrial place would), opens the gripper while backing off 1 cm, and
+   retracts.
+
+Nothing is attached or constrained: the part is held by finger friction alone. A
+believed axis that is flipped (yaw + pi) therefore ends reversed in the cradle.
+
+Motion: Cartesian straight lines with a quintic (minimum-jerk) time scaling, IK at every
+control tick, joint position control with the arm's torque limits. The hand yaw is
+parametrised by the wrist angle (joint 7) so the arm never winds past its joint limits.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from don_gym.sim.bullet import Bullet
+from don_gym.sim.robot import ARM_LOWER_RAD, ARM_UPPER_RAD, MAX_WIDTH_M, Panda, wrap_angle
+from don_gym.sim.task import (
+    CRADLE_APEX_HEIGHT_M,
+    CRADLE_CENTER_XY_M,
+    CRADLE_TARGET_YAW_RAD,
+    TABLE_TOP_Z_M,
+    PickPlaceTask,
+)
+
+#: Physics steps per control tick of the scripted motions (4 ms steps -> 50 Hz IK updates).
+TICK_STEPS = 5
+#: Joint 7 turns at most this fast (rad/s) so a carried part is not flung off by the rotation.
+WRIST_SPEED_RAD_S = 1.2
+#: Lowest TCP height above the table: the fingertips (7 mm below the TCP) stay 3 mm clear.
+MIN_TCP_HEIGHT_M = 0.010
+#: Heights above the table for approach, carrying and retreat.
+APPROACH_HEIGHT_M = 0.12
+CARRY_HEIGHT_M = 0.16
+#: Speeds (m/s): fast in free space, slow near contact.
+FREE_SPEED_M_S = 0.35
+APPROACH_SPEED_M_S = 0.15
+LIFT_SPEED_M_S = 0.10
+PLACE_SPEED_M_S = 0.05
+RETRACT_SPEED_M_S = 0.2
+#: Lift (m) before opening when the fingertips touch the cradle's walls.
+FINGER_CLEARANCE_M = 0.004
+#: Margin (rad) kept from joint 7's limits when choosing wrist angles.
+WRIST_MARGIN_RAD = 0.08
+
+
+def min_jerk(s: float) -> float:
+    s = min(max(s, 0.0), 1.0)
+    return s * s * s * (10.0 + s * (-15.0 + 6.0 * s))
+
+
+@dataclass
+class ScriptTrace:
+    """What happened during the script (for info and debugging)."""
+
+    lifted: bool = False
+    left_workspace: bool = False
+    grasp_width_m: float = float("nan")
+    release_width_m: float = float("nan")
+    phases: list[str] = field(default_factory=list)
+    sim_time_s: float = 0.0
+
+
+class GraspPlaceScript:
+    """Runs one grasp-and-place; owns no state beyond one episode."""
+
+    def __init__(self, sim: Bullet, robot: Panda, task: PickPlaceTask):
+        self.sim = sim
+        self.robot = robot
+        self.task = task
+        self.base_xy = robot.base_position[:2]
+        self.trace = ScriptTrace()
+        self._tcp = robot.tcp_pose()[:3, 3].copy()
+        self._wrist = float(robot.joint_positions()[6])
+
+    # ------------------------------------------------------------- helpers
+    def _yaw_for(self, position: np.ndarray, wrist_rad: float) -> float:
+        """Hand yaw that joint 7 at ``wrist_rad`` gives at ``position`` (top-down, see robot.wrist_angle_estimate)."""
+        q1 = np.arctan2(position[1] - self.base_xy[1], position[0] - self.base_xy[0])
+        return float(q1 - wrist_rad + np.pi / 4)
+
+    def _wrist_for(self, position: np.ndarray, yaw_rad: float) -> float:
+        q1 = np.arctan2(position[1] - self.base_xy[1], position[0] - self.base_xy[0])
+        return wrap_angle(q1 - yaw_rad + np.pi / 4)
+
+    def _step(self, count: int) -> None:
+        self.sim.step(count)
+        self.trace.sim_time_s += count * self.sim.time_step_s
+
+    def _command(self, position: np.ndarray, wrist_rad: float) -> None:
+        q = self.robot.inverse_kinematics(position, self._yaw_for(position, wrist_rad), wrist_rad=wrist_rad)
+        self.robot.command_arm(q)
+
+    def move(
+        self,
+        target: np.ndarray,
+        wrist_rad: float,
+        speed_m_s: float,
+        guard: Callable[[], bool] | None = None,
+        settle_s: float = 0.25,
+    ) -> bool:
+        """Straight TCP line to ``target`` while joint 7 turns to ``wrist_rad``.
+
+        Returns False when ``guard`` fired (the arm then holds the pose where it fired).
+        """
+        start, wrist0 = self._tcp.copy(), self._wrist
+        target = np.asarray(target, dtype=np.float64)
+        distance = float(np.linalg.norm(target - start))
+        duration = max(distance / speed_m_s, abs(wrist_rad - wrist0) / WRIST_SPEED_RAD_S, 0.1)
+        tick_s = TICK_STEPS * self.sim.time_step_s
+        ticks = int(np.ceil(duration / tick_s))
+        for k in range(1, ticks + 1):
+            s = min_jerk(k / ticks)
+            position = start + s * (target - start)
+            wrist = wrist0 + s * (wrist_rad - wrist0)
+            self._command(position, wrist)
+            self._step(TICK_STEPS)
+            if guard is not None and guard():
+                self._tcp, self._wrist = position, wrist
+                return False
+        self._tcp, self._wrist = target, float(wrist_rad)
+        # Let the joint controllers catch up with the last set-point.
+        for _ in range(int(np.ceil(settle_s / tick_s))):
+            if np.linalg.norm(self.robot.tcp_pose()[:3, 3] - target) < 0.001:
+                break
+            self._step(TICK_STEPS)
+        return True
+
+    def gripper(self, width_m: float, max_time_s: float = 2.0, min_time_s: float = 0.2) -> float:
+        """Drive the fingers to ``width_m``; wait until they stop (blocked by a part or arrived)."""
+        self.robot.command_gripper(width_m)
+        tick_s = TICK_STEPS * self.sim.time_step_s
+        previous = self.robot.gripper_width()
+        elapsed = 0.0
+        while elapsed < max_time_s:
+            self._step(TICK_STEPS)
+            elapsed += tick_s
+            width = self.robot.gripper_width()
+            if elapsed >= min_time_s and abs(width - previous) < 2e-5:
+                break
+            previous = width
+        return self.robot.gripper_width()
+
+    def choose_wrists(self, grasp_xyz: np.ndarray, axis_yaw_rad: float) -> tuple[float, float]:
+        """Joint-7 angles at the grasp and at the place for a believed +axis yaw.
+
+        The fingers close across the axis, so the hand yaw is the axis yaw or that plus pi;
+        the place yaw turns the believed axis onto the target direction. Of the two, take
+        the one that keeps both wrist angles inside joint 7's range (the grasp one first);
+        the rare leftover is clamped, costing at most the 10 degrees joint 7 lacks of a
+        full turn, inside the 20-degree placement tolerance.
+        """
+        place_xyz = np.array([*CRADLE_CENTER_XY_M, 0.0])
+        turn = CRADLE_TARGET_YAW_RAD - axis_yaw_rad
+        limit_lo, limit_hi = ARM_LOWER_RAD[6] + WRIST_MARGIN_RAD, ARM_UPPER_RAD[6] - WRIST_MARGIN_RAD
+        best = None
+        for hand_yaw in (axis_yaw_rad, axis_yaw_rad + np.pi):
+            wrist_grasp = self._wrist_for(grasp_xyz, hand_yaw)
+            wrist_place = self._wrist_for(place_xyz, hand_yaw + turn)
+            excess_grasp = max(0.0, limit_lo - wrist_grasp, wrist_grasp - limit_hi)
+            excess_place = max(0.0, limit_lo - wrist_place, wrist_place - limit_hi)
+            # Prefer the wrist angles closest to the middle of the range among feasible ones.
+            cost = 100.0 * excess_grasp + 10.0 * excess_place + 0.01 * (abs(wrist_grasp) + abs(wrist_place))
+            if best is None or cost < best[0]:
+                best = (cost, wrist_grasp, wrist_place)
+        _, wrist_grasp, wrist_place = best
+        return float(np.clip(wrist_grasp, limit_lo, limit_hi)), float(np.clip(wrist_place, limit_lo, limit_hi))
+
+    # ---------------------------------------------------------------- run
+    def run(self, grasp_xyz: np.ndarray, axis_yaw_rad: float) -> ScriptTrace:
+        """Execute the whole grasp-and-place for the believed grasp point and +axis yaw."""
+        task, robot, trace = self.task, self.robot, self.trace
+        part_id = task.part.body_id
+        grasp = np.asarray(grasp_xyz, dtype=np.float64).copy()
+        grasp[2] = max(grasp[2], TABLE_TOP_Z_M + MIN_TCP_HEIGHT_M)
+        wrist_grasp, wrist_place = self.choose_wrists(grasp, axis_yaw_rad)
+        above_grasp = np.array([grasp[0], grasp[1], TABLE_TOP_Z_M + APPROACH_HEIGHT_M])
+
+        def touching_table() -> bool:
+            return any(robot.finger_contacts(task.table_id))
+
+        trace.phases.append("approach")
+        robot.command_gripper(MAX_WIDTH_M)
+        self.move(above_grasp, wrist_grasp, FREE_SPEED_M_S)
+        trace.phases.append("descend")
+        self.move(grasp, wrist_grasp, APPROACH_SPEED_M_S, guard=touching_table)
+        trace.phases.append("close")
+        trace.grasp_width_m = self.gripper(0.0)
+        trace.phases.append("lift")
+        lift_to = np.array([grasp[0], grasp[1], TABLE_TOP_Z_M + CARRY_HEIGHT_M])
+        self.move(lift_to, wrist_grasp, LIFT_SPEED_M_S)
+        trace.lifted = task.is_held(robot.contacts(task))
+        if not trace.lifted:
+            # Nothing in the hand: a real program would stop here too.
+            self.gripper(MAX_WIDTH_M)
+            trace.left_workspace = task.left_workspace()
+            return trace
+
+        trace.phases.append("carry")
+        above_cradle = np.array([*CRADLE_CENTER_XY_M, TABLE_TOP_Z_M + CARRY_HEIGHT_M])
+        self.move(above_cradle, wrist_place, FREE_SPEED_M_S)
+        trace.phases.append("lower")
+        # Quickly to where no part held at most 4 cm below the TCP can touch, then a slow
+        # guarded move: stop at the first contact of the part or a finger with the cradle.
+        apex_z = TABLE_TOP_Z_M + CRADLE_APEX_HEIGHT_M
+        self.move(np.array([*CRADLE_CENTER_XY_M, apex_z + 0.06]), wrist_place, APPROACH_SPEED_M_S, settle_s=0.0)
+        lowest = np.array([*CRADLE_CENTER_XY_M, apex_z + MIN_TCP_HEIGHT_M])
+
+        def touching_cradle() -> bool:
+            if self.sim.contact_points(part_id, task.cradle_id):
+                return True
+            return any(robot.finger_contacts(task.cradle_id))
+
+        self.move(lowest, wrist_place, PLACE_SPEED_M_S, guard=touching_cradle, settle_s=0.0)
+        trace.phases.append("release")
+        if any(robot.finger_contacts(task.cradle_id)):
+            # Fingertips on the groove walls: the 45-degree walls would block the fingers from
+            # opening (and wedge the part between them), so lift clear first; the part then
+            # drops the last few millimetres into the groove.
+            self.move(self._tcp + np.array([0.0, 0.0, FINGER_CLEARANCE_M]), self._wrist, 0.02, settle_s=0.1)
+        trace.release_width_m = self.gripper(MAX_WIDTH_M, max_time_s=1.0)
+        trace.phases.append("retract")
+        self.move(self._tcp + np.array([0.0, 0.0, 0.10]), self._wrist, RETRACT_SPEED_M_S, settle_s=0.0)
+        # Let the part come to rest (five calm ticks in a row, at most 2 s) before judging.
+        calm = 0
+        for _ in range(100):
+            self._step(TICK_STEPS)
+            calm = calm + 1 if task.is_at_rest() else 0
+            if calm >= 5:
+                break
+        trace.left_workspace = task.left_workspace()
+        return trace
