@@ -126,6 +126,9 @@ class Bullet:
         if loader is not None:
             with silence_c_stdout():
                 plugin = self.client.loadPlugin(loader.get_filename(), "_eglRendererPlugin")
+                if plugin >= 0:
+                    # The plugin creates its OpenGL context, and prints about it, at the first image.
+                    self.client.getCameraImage(8, 8, renderer=p.ER_BULLET_HARDWARE_OPENGL)
             if plugin >= 0:
                 self._egl_plugin = plugin
                 return "egl"
@@ -215,11 +218,12 @@ class Bullet:
     def close(self) -> None:
         """Disconnect the client; safe to call twice."""
         if self.id >= 0:
-            if self._egl_plugin is not None:
+            with silence_c_stdout():
+                if self._egl_plugin is not None:
+                    with contextlib.suppress(p.error):
+                        self.client.unloadPlugin(self._egl_plugin)
                 with contextlib.suppress(p.error):
-                    self.client.unloadPlugin(self._egl_plugin)
-            with contextlib.suppress(p.error):
-                self.client.disconnect()
+                    self.client.disconnect()
             self.id = -1
             self.bodies.clear()
             self._snapshot = None

@@ -47,7 +47,9 @@ def check_renderer(renderer: str) -> str:
     return renderer
 
 
-def projection_matrix_gl(intrinsics: CameraIntrinsics, near_m: float, far_m: float, renderer: str = "tiny") -> np.ndarray:
+def projection_matrix_gl(
+    intrinsics: CameraIntrinsics, near_m: float, far_m: float, renderer: str = "tiny"
+) -> np.ndarray:
     """(4, 4) OpenGL projection matrix for pinhole ``intrinsics`` and clip planes in metres.
 
     The principal point is offset so that a point rendered here lands on the pixel that

@@ -29,12 +29,23 @@ state ``joint_positions`` (9,), ``ee_pose`` (7,) TCP position + quaternion (x, y
 ``is_success``, ``pose_id``, ``sensor``, ``renderer``, and after a step ``lifted``,
 ``placement_distance_m``, ``placement_axis_error_rad``.
 
-Physics: 4 ms steps (1/250 s), 150 solver iterations, part collision from V-HACD convex
-pieces, mass and inertia from the part's density, finger friction 1.8 and 40 N per finger.
+Physics: 4 ms steps (1/250 s), up to 150 solver iterations, the part's collision shape made of
+convex pieces (:mod:`don_gym.sim.part`), mass and inertia from its density, gear-coupled fingers
+with friction 1.8 and 40 N each; nothing is attached to the hand, friction holds the part.
+
+Renderer: "tiny" (TinyRenderer) by default, for pixels identical on every machine; "egl" on
+request (falls back to "tiny" with a warning); ``info["renderer"]`` says which one ran. The
+wrist camera never sees the robot, so the robot is hidden while it renders (4x faster with
+TinyRenderer); ``render()`` (overview camera) shows everything.
+
+Default sensor "d435": the paper's wrist camera was a RealSense D435, and its missing depth on
+the steel part is what makes self-supervised DON training hard; ``sensor="ideal"`` gives exact
+depth (and no calibration error) for debugging.
 """
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from pathlib import Path
 from typing import Any
@@ -47,7 +58,7 @@ from scipy.spatial.transform import Rotation
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics, make_transform
 from don_gym.objects import ObjectModel, load_object
-from don_gym.sim.bullet import Bullet
+from don_gym.sim.bullet import Bullet, silence_c_stdout
 from don_gym.sim.camera import check_renderer, render_camera, specular_map
 from don_gym.sim.robot import (
     T_HAND_CAMERA,
@@ -254,8 +265,12 @@ class PickPlaceEnv(gym.Env):
         return spaces.Dict(entries)
 
     # ---------------------------------------------------------- observation
+    def _quiet_renderer(self):
+        """The EGL plugin prints to the C stdout whenever it sets up a framebuffer; keep it quiet."""
+        return silence_c_stdout() if self.renderer == "egl" else contextlib.nullcontext()
+
     def _camera_images(self, T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        with self.robot.hidden():
+        with self.robot.hidden(), self._quiet_renderer():
             rgb, depth_ideal, segmentation = render_camera(
                 self.sim.client, self.intrinsics, T_world_camera, NEAR_M, FAR_M, self.renderer
             )
@@ -415,14 +430,15 @@ class PickPlaceEnv(gym.Env):
         if self.render_mode != "rgb_array":
             return None
         width, height = self.render_size
-        rgb, _, _ = render_camera(
-            self.sim.client,
-            CameraIntrinsics.d435(width, height),
-            _look_at(OVERVIEW_EYE_M, OVERVIEW_TARGET_M),
-            0.05,
-            5.0,
-            self.renderer,
-        )
+        with self._quiet_renderer():
+            rgb, _, _ = render_camera(
+                self.sim.client,
+                CameraIntrinsics.d435(width, height),
+                _look_at(OVERVIEW_EYE_M, OVERVIEW_TARGET_M),
+                0.05,
+                5.0,
+                self.renderer,
+            )
         return rgb
 
     def close(self) -> None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pybullet as p
@@ -22,6 +23,9 @@ from scipy.spatial.transform import Rotation
 
 from don_gym.geometry import make_transform
 from don_gym.sim.bullet import Bullet, pose_matrix
+
+if TYPE_CHECKING:  # task imports the part, which imports nothing of the robot: no cycle at run time
+    from don_gym.sim.task import PartContacts, PickPlaceTask
 
 ARM_JOINTS = (0, 1, 2, 3, 4, 5, 6)
 FINGER_JOINTS = (9, 10)
@@ -182,8 +186,8 @@ class Panda:
         """Whether each finger touches ``body_id``."""
         return tuple(bool(self.sim.contact_points(self.body_id, body_id, link_a=f)) for f in FINGER_JOINTS)
 
-    def contacts(self, task) -> object:
-        """:class:`~don_gym.sim.task.PartContacts` of the task's part with fingers, table and cradle."""
+    def contacts(self, task: PickPlaceTask) -> PartContacts:
+        """What the task's part touches: each finger, the table, the cradle."""
         return task.contacts(self.body_id, FINGER_JOINTS)
 
     # -------------------------------------------------------------- control
@@ -220,23 +224,16 @@ class Panda:
         )
         return np.clip(np.asarray(solution[:7]), ARM_LOWER_RAD, ARM_UPPER_RAD)
 
-    def command_arm(self, arm_rad: np.ndarray, max_speed_rad_s: float | None = None) -> None:
+    def command_arm(self, arm_rad: np.ndarray) -> None:
         """Position-control the arm joints towards ``arm_rad`` with the real torque limits."""
         self.arm_target_rad = np.asarray(arm_rad, dtype=np.float64).copy()
-        client = self.sim.client
-        if max_speed_rad_s is None:
-            client.setJointMotorControlArray(
-                self.body_id,
-                list(ARM_JOINTS),
-                p.POSITION_CONTROL,
-                targetPositions=list(self.arm_target_rad),
-                forces=list(ARM_FORCES_N_M),
-            )
-            return
-        for joint, target, force in zip(ARM_JOINTS, self.arm_target_rad, ARM_FORCES_N_M, strict=True):
-            client.setJointMotorControl2(
-                self.body_id, joint, p.POSITION_CONTROL, float(target), force=force, maxVelocity=max_speed_rad_s
-            )
+        self.sim.client.setJointMotorControlArray(
+            self.body_id,
+            list(ARM_JOINTS),
+            p.POSITION_CONTROL,
+            targetPositions=list(self.arm_target_rad),
+            forces=list(ARM_FORCES_N_M),
+        )
 
     def command_gripper(self, width_m: float, force_n: float = FINGER_FORCE_N) -> None:
         """Move the fingers towards pad distance ``width_m`` at :data:`FINGER_SPEED_M_S`, at most ``force_n`` each."""

@@ -6,9 +6,9 @@ Given the agent's belief (grasp point and yaw of the part's +axis), the robot:
 2. descends, closes the gripper slowly with a limited force and waits for the fingers to stop,
 3. lifts slowly, carries the part above the cradle while turning the hand so that the
    *believed* +axis ends along the cradle's target direction,
-4. lowers it with a guarded move (stops at the first contact with the cradle, as a
-   force-guarded industrial place would), opens the gripper while backing off 1 cm, and
-   retracts.
+4. lowers it with a guarded move (stops at the first contact of the part or a fingertip
+   with the cradle, as a force-guarded industrial place would), lifts 4 mm if a fingertip
+   rests on a groove wall, opens the gripper and retracts.
 
 Nothing is attached or constrained: the part is held by finger friction alone. A
 believed axis that is flipped (yaw + pi) therefore ends reversed in the cradle.
@@ -158,9 +158,9 @@ class GraspPlaceScript:
 
         The fingers close across the axis, so the hand yaw is the axis yaw or that plus pi;
         the place yaw turns the believed axis onto the target direction. Of the two, take
-        the one that keeps both wrist angles inside joint 7's range (the grasp one first);
-        the rare leftover is clamped, costing at most the 10 degrees joint 7 lacks of a
-        full turn, inside the 20-degree placement tolerance.
+        the one that keeps both wrist angles inside joint 7's range (less the margin), the
+        grasp one first; in the rare case neither does, the place angle is clamped, which
+        costs at most the 15 degrees the range lacks of a full turn (placement tolerance 20).
         """
         place_xyz = np.array([*CRADLE_CENTER_XY_M, 0.0])
         turn = CRADLE_TARGET_YAW_RAD - axis_yaw_rad

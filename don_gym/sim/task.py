@@ -12,9 +12,11 @@ Outcome (paper's categories):
 - ``"fail"``: the part was never lifted (or it left the workspace).
 - ``"grasp_only"``: it was lifted, but then dropped, misplaced, or placed reversed
   (+axis against the target direction, "upside down").
-- ``"grasp_and_place"``: it rests in the cradle (touches it, not the table), its centre of mass within
-  :data:`PLACE_TOLERANCE_M` (2 cm, horizontally) of the cradle centre and its +axis within
+- ``"grasp_and_place"``: it rests in the cradle (touches it, not the table), its centre of
+  mass within :data:`PLACE_TOLERANCE_M` (2 cm, horizontally) of the cradle centre and its +axis within
   :data:`AXIS_TOLERANCE_RAD` (20 degrees) of the target direction, released by the gripper.
+  A toolcap seated correctly has its axis about 7 degrees from horizontal (the flange is
+  3 mm larger in radius than the body), which counts towards the 20 degrees.
 """
 
 from __future__ import annotations
@@ -43,8 +45,9 @@ CRADLE_CENTER_XY_M = np.array([0.36, 0.42])
 CRADLE_TARGET_YAW_RAD = 0.0
 #: Height of the groove's bottom line above the table, groove length, wall width along the slope.
 #: The walls are short (rim 12.7 mm above and beside the bottom line): they hold a part of up to
-#: 17 mm radius (the toolcap's flange touches at 12 mm) while the fingers, which straddle a
-#: 28 mm body with 14 mm thick fingertips, stay clear of them, so the part is set down, not dropped.
+#: 17 mm radius (the toolcap's flange touches at 12 mm) while the fingers, which straddle the
+#: 28 mm body with 14 mm thick fingertips, just clear them, so the toolcap is set down, not
+#: dropped; a slimmer part (the shaft) is let go a few millimetres above its seat.
 CRADLE_APEX_HEIGHT_M = 0.03
 CRADLE_LENGTH_M = 0.14
 CRADLE_WALL_WIDTH_M = 0.018
