@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from don_gym.errors import DonGymError
 
 # Subcommand modules, in the order --help lists them.
-SUBCOMMANDS = ["embed", "build-dataset", "export", "train"]
+SUBCOMMANDS = ["embed", "build-dataset", "export", "train", "evaluate", "benchmark"]
 
 
 def build_parser() -> argparse.ArgumentParser:
