@@ -243,7 +243,7 @@ def make_ppo_env(
 def make_sac_env(
     object: str | Path = "toolcap",  # noqa: A002 - the env's own kwarg name
     keypoint_model: str | Path = "oracle",
-    image_size: tuple[int, int] = (80, 60),
+    image_size: tuple[int, int] = (160, 120),
     sensor: str = "d435",
     reward_type: str = "dense",
     max_steps: int = 100,

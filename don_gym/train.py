@@ -318,4 +318,3 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> T
     plot_loss_curve(rows, out / LOSS_PNG, f"{config.method} on {info['object']} ({config.arch})")
     final_loss = float(np.mean([float(r["loss"]) for r in rows[-max(1, len(rows) // 20) :]]))
     return TrainResult(out / FINAL_MODEL, final_loss, config.steps, seconds, images_seen / max(seconds, 1e-9))
-

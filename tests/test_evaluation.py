@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from don_gym.wrappers.descriptors import DescriptorSource
 
 from don_gym.build import DatasetConfig, build_dataset
 from don_gym.checkpoints import save_checkpoint
@@ -25,6 +24,7 @@ from don_gym.evaluation import (
 from don_gym.geometry import CameraIntrinsics, make_transform
 from don_gym.model import DenseObjectNet
 from don_gym.objects import load_object
+from don_gym.wrappers.descriptors import DescriptorSource
 
 torch.set_num_threads(1)
 
