@@ -10,6 +10,10 @@ Installed as ``don_gym.agents``.
       env = agent.env                                # env wrapped with the agent's keypoints
       obs, info = env.reset(options={"pose_id": 0})
       obs, reward, terminated, truncated, info = env.step(agent.act(obs))
+
+- :mod:`don_gym.agents.rl` (extra ``rl``): stable-baselines3 baselines, PPO on ``control="grasp"``
+  with keypoint observations and SAC on ``control="ee"`` (``rl.train``, ``rl.evaluate``); imported
+  on demand so that the core install does not need stable-baselines3.
 """
 
 from don_gym.agents.axis_grasp import AxisGraspAgent

@@ -1,8 +1,9 @@
 """Tracking accuracy and grasp-and-place outcomes of the shipped DONs against the oracle.
 
 1. Tracking (RESULTS.md section "tracking"): for each object, a held-out dataset (seed 1000; the
-   shipped networks were trained on seed 0) of ``--scenes`` x ``--frames`` at 320x240 with the
-   D435 sensor, then :func:`don_gym.evaluation.evaluate_tracking` (the paper's protocol) for the
+   shipped networks were trained on seed 0) of ``--scenes`` x ``--frames`` at the image size the
+   object's shipped networks were trained at, with the D435 sensor, then
+   :func:`don_gym.evaluation.evaluate_tracking` (the paper's protocol) for the
    oracle (optimal descriptors rendered from the true poses: the baseline every network is
    compared with) and every shipped network of the object, once with ideal depth and once with
    the recorded D435 depth for the predicted points.
@@ -36,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import record_section  # noqa: E402
 
 from don_gym.build import DatasetConfig, build_dataset  # noqa: E402
+from don_gym.checkpoints import read_checkpoint_metadata  # noqa: E402
 from don_gym.evaluation import TrackingConfig, evaluate_tracking, tracking_table, write_tracking_outputs  # noqa: E402
 from don_gym.grasp_benchmark import (  # noqa: E402
     GraspBenchmarkConfig,
@@ -44,9 +46,10 @@ from don_gym.grasp_benchmark import (  # noqa: E402
     outcome_table,
     run_grasp_benchmark,
     sweep_table,
+    training_image_size,
     write_grasp_outputs,
 )
-from don_gym.zoo import shipped_names  # noqa: E402
+from don_gym.zoo import shipped_names, shipped_path  # noqa: E402
 
 FIGURES = Path(__file__).resolve().parent / "figures"
 EVAL_SEED = 1000
@@ -55,13 +58,16 @@ OBJECTS = ("toolcap", "shaft")
 
 def tracking(args: argparse.Namespace, work: Path) -> str:
     parts = []
+    sizes = []
     for object_name in args.objects:
         networks = [n for n in shipped_names() if n.split("/", 1)[0] == object_name]
+        image_size = training_image_size({n: read_checkpoint_metadata(shipped_path(n)).image_size for n in networks})
+        sizes.append(f"{object_name} {image_size[0]}x{image_size[1]}")
         config = DatasetConfig(
             object=object_name,
             scenes=args.scenes,
             frames_per_scene=args.frames,
-            image_size=(320, 240),
+            image_size=image_size,
             sensor="d435",
             seed=EVAL_SEED,
             fuse_depth=False,
@@ -92,7 +98,8 @@ def tracking(args: argparse.Namespace, work: Path) -> str:
                 + (f" Figures: {', '.join(figures)}." if figures else "")
             )
     header = (
-        f"Held-out datasets: {args.scenes} scenes x {args.frames} frames per object, 320x240, sensor `d435`, "
+        f"Held-out datasets: {args.scenes} scenes x {args.frames} frames per object at the networks' training size "
+        f"({', '.join(sizes)}), sensor `d435`, "
         f"seed {EVAL_SEED} (the shipped networks were trained on seed 0). Protocol (`don_gym.evaluation`): "
         f"{args.points} reference pixels per scene on the object in the frame showing most of it, their "
         "descriptors and true 3D points (ideal depth, true camera pose); in every other frame where a point "
@@ -115,7 +122,7 @@ def grasp(args: argparse.Namespace, work: Path) -> str:
         methods=methods,
         repeats=args.repeats,
         sensors=("ideal", "d435@0.5", "d435"),
-        image_size=(320, 240),
+        image_size=None,  # the networks' training size
         poses=(0, 1) if args.quick else tuple(range(8)),
     )
     result = run_grasp_benchmark(config, workers=args.workers)
@@ -146,7 +153,8 @@ def grasp(args: argparse.Namespace, work: Path) -> str:
         if e["sensor"] == "d435" and e["repeat"] == 0 and e["method"] in {q["method"] for q in quick}
     ]
     body = (
-        f'Toolcap, `control="grasp"`, {config.image_size[0]}x{config.image_size[1]} wrist camera, '
+        f'Toolcap, `control="grasp"`, {result.config.image_size[0]}x{result.config.image_size[1]} wrist camera '
+        "(the shipped networks' training size), "
         f"`AxisGraspAgent` per method, {len(config.poses)} fixed poses x {config.repeats} repeats (seeds vary "
         "sensor noise and hand-eye calibration error; every method and sensor sees the same seeds), "
         f"{args.workers} worker processes. Baseline: the oracle (optimal descriptors from the true pose). "

@@ -244,7 +244,7 @@ _THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS
 
 
 @contextlib.contextmanager
-def _single_threaded_children() -> Iterator[None]:
+def single_threaded_children() -> Iterator[None]:
     """Processes spawned inside inherit one-thread settings for numerical libraries."""
     saved = {name: os.environ.get(name) for name in _THREAD_VARIABLES}
     os.environ.update({name: "1" for name in _THREAD_VARIABLES})
@@ -304,7 +304,7 @@ def build_dataset(
             # One BLAS/OpenMP thread per worker: the workers already fill the cores, and
             # oversubscription makes a 2-worker build slower than a 1-worker one.
             with (
-                _single_threaded_children(),
+                single_threaded_children(),
                 context.Pool(
                     min(workers, len(todo)),
                     initializer=_worker_init,

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +48,8 @@ DEFAULT_METHODS: tuple[str, ...] = (
 )
 #: Sensor sweep from ideal depth to the D435 (the last one is the headline sensor).
 DEFAULT_SENSORS: tuple[str, ...] = ("ideal", "d435@0.5", "d435")
+#: Wrist-camera (width, height) in pixels when no network decides it (the oracle alone).
+DEFAULT_IMAGE_SIZE: tuple[int, int] = (320, 240)
 #: Yaw errors above this (rad) count as a flipped (+axis reversed) grasp.
 FLIP_THRESHOLD_RAD = np.pi / 2
 
@@ -62,7 +64,8 @@ class GraspBenchmarkConfig:
         poses: fixed pose ids (0..7).
         repeats: episodes per (method, pose, sensor), with different seeds.
         sensors: sensor specs (module docstring); the last is the headline sensor.
-        image_size: wrist-camera (width, height) in pixels.
+        image_size: wrist-camera (width, height) in pixels; None: the size the networks among
+            ``methods`` were trained at (they must agree), :data:`DEFAULT_IMAGE_SIZE` for the oracle alone.
         renderer: PyBullet renderer of the camera images.
         seed: benchmark seed from which every episode seed derives.
     """
@@ -72,7 +75,7 @@ class GraspBenchmarkConfig:
     poses: tuple[int, ...] = tuple(range(len(FIXED_POSES)))
     repeats: int = 3
     sensors: tuple[str, ...] = DEFAULT_SENSORS
-    image_size: tuple[int, int] = (320, 240)
+    image_size: tuple[int, int] | None = None
     renderer: str = "tiny"
     seed: int = 0
 
@@ -93,9 +96,23 @@ class GraspBenchmarkConfig:
         from don_gym.sim.camera import check_renderer
 
         check_renderer(self.renderer)
+        if self.image_size is None:
+            return
         width, height = self.image_size
         if not (16 <= width <= 1280 and 16 <= height <= 960):
             raise DonGymError(f"image size {width}x{height} is out of range; expected 16x16 to 1280x960")
+
+
+def training_image_size(trained_sizes: dict[str, tuple[int, int]]) -> tuple[int, int]:
+    """The one image size the networks (method -> (width, height)) were trained at; a DON is not
+    scale invariant, so the wrist camera should show the part at the size the networks learned."""
+    sizes = set(trained_sizes.values())
+    if not sizes:
+        return DEFAULT_IMAGE_SIZE
+    if len(sizes) > 1:
+        listed = ", ".join(f"{m} {w}x{h}" for m, (w, h) in trained_sizes.items())
+        raise DonGymError(f"the networks were trained at different image sizes ({listed}); give the image size")
+    return sizes.pop()
 
 
 def default_methods(object_name: str) -> tuple[str, ...]:
@@ -305,12 +322,17 @@ def run_grasp_benchmark(config: GraspBenchmarkConfig, workers: int = 2, progress
 
     object_model = load_object(config.object)
     method_info = {}
+    trained_sizes = {}
     for method in config.methods:
         source = load_descriptor_source(method, object_model)
         metadata = getattr(source, "metadata", None)
         method_info[method] = {"method": source.method, "descriptor_dim": source.descriptor_dim} | (
             {"training_steps": metadata.training_steps, "arch": metadata.arch} if metadata is not None else {}
         )
+        if metadata is not None:
+            trained_sizes[method] = tuple(metadata.image_size)
+    if config.image_size is None:
+        config = replace(config, image_size=training_image_size(trained_sizes))
     tasks = episode_tasks(config)
     records: list[dict[str, Any] | None] = [None] * len(tasks)
     start = time.perf_counter()
@@ -325,11 +347,11 @@ def run_grasp_benchmark(config: GraspBenchmarkConfig, workers: int = 2, progress
             finally:
                 runner.close()
         else:
-            from don_gym.build import _single_threaded_children
+            from don_gym.build import single_threaded_children
 
             context = mp.get_context("spawn")
             with (
-                _single_threaded_children(),
+                single_threaded_children(),
                 context.Pool(workers, initializer=_worker_init, initargs=(config,)) as pool,
             ):
                 for index, record in pool.imap_unordered(_worker_run, list(enumerate(tasks))):
@@ -351,9 +373,10 @@ def outcome_table(result: GraspBenchmarkResult, sensor: str | None = None) -> st
     sensor = result.headline_sensor if sensor is None else sensor
     summary = result.summary()["results"][sensor]
     total = len(result.config.poses) * result.config.repeats
+    width, height = result.config.image_size
     lines = [
-        f"Sensor `{sensor}`, {len(result.config.poses)} poses x {result.config.repeats} repeats = {total} "
-        "episodes per method.",
+        f"Sensor `{sensor}`, {width}x{height} wrist camera, {len(result.config.poses)} poses x "
+        f"{result.config.repeats} repeats = {total} episodes per method.",
         "",
         "| method | grasp & place | grasp only | fail | grasped | flipped +axis "
         "| median grasp position error (mm) | median yaw error (deg) |",

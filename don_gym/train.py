@@ -90,11 +90,14 @@ class TrainConfig:
 
 @dataclass(frozen=True)
 class TrainResult:
+    """What a finished run reports; ``seconds`` and ``images_per_second`` cover every session of a
+    resumed run, and are None for a run resumed from a state saved before they were recorded."""
+
     model_path: Path
     final_loss: float
     steps: int
-    seconds: float
-    images_per_second: float
+    seconds: float | None
+    images_per_second: float | None
 
 
 def _device(name: str) -> torch.device:
@@ -208,6 +211,9 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> T
     augment_config = AugmentConfig(**config.augment)
 
     start_step = 0
+    # Training time and images of earlier sessions of a resumed run; None when unknown.
+    earlier_seconds: float | None = 0.0
+    earlier_images: int | None = 0
     rows: list[dict[str, Any]] = []
     state_path = out / TRAIN_STATE
     if resume and state_path.is_file():
@@ -225,6 +231,8 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> T
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
         start_step = int(state["step"])
+        earlier_seconds = float(state["seconds"]) if "seconds" in state else None
+        earlier_images = int(state["images_seen"]) if "images_seen" in state else None
         rows = _read_loss_rows(out / LOSS_CSV, start_step)
     elif out.exists() and (out / RUN_CONFIG).exists() and not resume:
         raise DonGymError(f"{out}: already holds a training run; pass --resume to continue it or choose a new --out")
@@ -239,6 +247,14 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> T
                     "optimizer": optimizer.state_dict(),
                     "scheduler": scheduler.state_dict(),
                     "step": step,
+                    **(
+                        {}
+                        if earlier_seconds is None or earlier_images is None
+                        else {
+                            "seconds": earlier_seconds + time.perf_counter() - start_time,
+                            "images_seen": earlier_images + images_seen,
+                        }
+                    ),
                 },
                 tmp,
             )
@@ -317,4 +333,10 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> T
     save_state(config.steps)
     plot_loss_curve(rows, out / LOSS_PNG, f"{config.method} on {info['object']} ({config.arch})")
     final_loss = float(np.mean([float(r["loss"]) for r in rows[-max(1, len(rows) // 20) :]]))
-    return TrainResult(out / FINAL_MODEL, final_loss, config.steps, seconds, images_seen / max(seconds, 1e-9))
+    if earlier_seconds is None or earlier_images is None:
+        return TrainResult(out / FINAL_MODEL, final_loss, config.steps, None, None)
+    total_seconds = earlier_seconds + seconds
+    total_images = earlier_images + images_seen
+    return TrainResult(
+        out / FINAL_MODEL, final_loss, config.steps, total_seconds, total_images / max(total_seconds, 1e-9)
+    )

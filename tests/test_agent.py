@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -10,6 +12,7 @@ import torch
 import don_gym  # noqa: F401 - registers the envs
 from don_gym.agents import AxisGraspAgent
 from don_gym.build import DatasetConfig, build_dataset
+from don_gym.checkpoints import read_checkpoint_metadata
 from don_gym.errors import DonGymError
 from don_gym.geometry import make_transform, transform_points
 from don_gym.model import DenseObjectNet
@@ -17,7 +20,7 @@ from don_gym.objects import load_object
 from don_gym.sim.task import OUTCOMES
 from don_gym.train import TrainConfig, train
 from don_gym.wrappers import OracleDescriptors, axis_end_targets, descriptor_field_for
-from don_gym.zoo import shipped_names
+from don_gym.zoo import shipped_names, shipped_path
 
 
 @pytest.fixture(autouse=True)
@@ -190,10 +193,22 @@ def test_agent_runs_end_to_end_with_a_trained_network(env_320, tiny_checkpoint: 
 TOOLCAP_SHIPPED = [n for n in shipped_names() if n.startswith("toolcap/")]
 
 
+@pytest.fixture(scope="module")
+def env_shipped():
+    """The env at the image size the shipped toolcap networks were trained at (they share one)."""
+    sizes = {read_checkpoint_metadata(shipped_path(n)).image_size for n in TOOLCAP_SHIPPED}
+    assert len(sizes) == 1, f"the shipped toolcap networks were trained at different image sizes: {sizes}"
+    env = gym.make("DONToolcapPick-v0", image_size=sizes.pop())
+    yield env
+    env.close()
+
+
 @pytest.mark.skipif(not TOOLCAP_SHIPPED, reason="no shipped toolcap networks installed (benchmarks/train_shipped.py)")
 @pytest.mark.parametrize("name", TOOLCAP_SHIPPED or ["none"])
-def test_agent_runs_end_to_end_with_shipped_networks(env_320, name: str) -> None:
-    agent = AxisGraspAgent.for_env(env_320, model=name)
+def test_agent_runs_end_to_end_with_shipped_networks(env_shipped, name: str) -> None:
+    agent = AxisGraspAgent.for_env(env_shipped, model=name)
     assert agent.method == name.split("/")[1]
     assert agent.reference_descriptors.shape == (2, agent.source.descriptor_dim)
-    _run_one_grasp(env_320, agent)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*images but gets")  # no image-size mismatch
+        _run_one_grasp(env_shipped, agent)

@@ -12,6 +12,7 @@ import torch
 from don_gym.cli import main
 from don_gym.errors import DonGymError
 from don_gym.grasp_benchmark import (
+    DEFAULT_IMAGE_SIZE,
     EpisodeRunner,
     GraspBenchmarkConfig,
     GraspBenchmarkResult,
@@ -21,6 +22,7 @@ from don_gym.grasp_benchmark import (
     parse_sensor,
     run_grasp_benchmark,
     sweep_table,
+    training_image_size,
     write_grasp_outputs,
 )
 
@@ -93,3 +95,10 @@ def test_bad_inputs_fail_before_any_episode(tmp_path: Path, capsys) -> None:
         assert main(["benchmark", "grasp", *argv, "--no-progress"]) == 2
         err = capsys.readouterr().err
         assert err.startswith("don-gym benchmark: error: ") and err.count("\n") == 1
+
+
+def test_image_size_defaults_to_the_networks_training_size() -> None:
+    assert training_image_size({}) == DEFAULT_IMAGE_SIZE
+    assert training_image_size({"a": (640, 480), "b": (640, 480)}) == (640, 480)
+    with pytest.raises(DonGymError, match=r"different image sizes \(a 640x480, b 320x240\)"):
+        training_image_size({"a": (640, 480), "b": (320, 240)})

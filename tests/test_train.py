@@ -57,10 +57,14 @@ def test_same_seed_same_curve_and_exact_resume(tiny_dataset: str, tmp_path: Path
     train(replace(config, out=str(tmp_path / "b")), progress=False)
     np.testing.assert_array_equal(_losses(tmp_path / "a"), _losses(tmp_path / "b"))
     # Interrupted after step 4 (its checkpoint), then resumed: the same curve.
-    train(replace(config, out=str(tmp_path / "c"), steps=4), progress=False)
+    first = train(replace(config, out=str(tmp_path / "c"), steps=4), progress=False)
     with pytest.raises(DonGymError, match="different configuration.*lr"):
         train(replace(config, out=str(tmp_path / "c"), lr=1e-2), resume=True, progress=False)
-    train(replace(config, out=str(tmp_path / "c")), resume=True, progress=False)
+    resumed = train(replace(config, out=str(tmp_path / "c")), resume=True, progress=False)
     np.testing.assert_allclose(_losses(tmp_path / "c"), _losses(tmp_path / "a"), rtol=1e-5)
+    # The reported time covers both sessions; resuming a finished run reports the same run.
+    assert first.seconds is not None and resumed.seconds is not None and resumed.seconds > first.seconds
+    again = train(replace(config, out=str(tmp_path / "c")), resume=True, progress=False)
+    assert again.seconds == pytest.approx(resumed.seconds, rel=0.05) and again.final_loss == resumed.final_loss
     with pytest.raises(DonGymError, match="already holds"):
         train(config, progress=False)

@@ -28,6 +28,7 @@ from don_gym.keypoints import (
     soft_match,
 )
 from don_gym.model import DenseObjectNet
+from don_gym.objects import load_object
 from don_gym.wrappers import (
     DESCRIPTOR_BOUND,
     DescriptorObservation,
@@ -75,12 +76,13 @@ def test_best_match_ties_go_to_the_first_pixel_and_soft_match_to_the_middle_of_a
     image[4, 3:10] = ring  # a symmetric ring seen across the part: equal descriptors on one row
     uv, _ = best_match(image, ring)
     assert uv[0].tolist() == [3, 4]
-    soft_uv, distance = soft_match(image, ring, window_px=8.0)
+    # A sharp temperature, so that the gradient's pixels (all >= 0.5 away) get no weight.
+    soft_uv, distance = soft_match(image, ring, window_px=8.0, temperature=0.05)
     np.testing.assert_allclose(soft_uv[0], [6.0, 4.0], atol=1e-6)
     assert distance[0] == 0.0
     # Window 0 keeps the best match; a narrow window averages only its part of the ring.
     np.testing.assert_array_equal(soft_match(image, ring, window_px=0.0)[0][0], [3.0, 4.0])
-    np.testing.assert_allclose(soft_match(image, ring, window_px=2.0)[0][0], [4.0, 4.0], atol=1e-6)
+    np.testing.assert_allclose(soft_match(image, ring, window_px=2.0, temperature=0.05)[0][0], [4.0, 4.0], atol=1e-6)
 
 
 def test_match_confidence_is_one_at_zero_and_strictly_decreasing() -> None:
@@ -299,3 +301,17 @@ def test_network_descriptors_through_the_wrapper(ee_env, tmp_path: Path) -> None
     # An untrained net is not trained on this field: its hash does not match, so no field references.
     with pytest.warns(UserWarning, match="reference frame"):
         assert not env.source.reference_from_field
+
+
+def test_network_warns_once_when_the_env_image_size_differs_from_its_training_size(tmp_path: Path) -> None:
+    path = _checkpoint(tmp_path / "toolcap.safetensors", "toolcap", 3)  # trained at 64x48
+    source = load_descriptor_source(path, load_object("toolcap"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        source.descriptor_image({"rgb": np.zeros((48, 64, 3), np.uint8)})
+    other = load_descriptor_source(path, load_object("toolcap"))
+    with pytest.warns(UserWarning, match=r"trained on 64x48 images but gets 32x24.*image_size=\(64, 48\)"):
+        other.descriptor_image({"rgb": np.zeros((24, 32, 3), np.uint8)})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        other.descriptor_image({"rgb": np.zeros((24, 32, 3), np.uint8)})

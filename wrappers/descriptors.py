@@ -227,6 +227,7 @@ class NetworkDescriptors(DescriptorSource):
         self.source = source
         self._field: DescriptorField | None = None
         self._field_checked = False
+        self._size_checked = False
 
     @property
     def method(self) -> str:
@@ -261,7 +262,23 @@ class NetworkDescriptors(DescriptorSource):
     def descriptor_image(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> np.ndarray:
         if "rgb" not in obs:
             raise DonGymError("a DON needs obs['rgb']; the env was made without images (image_size=None?)")
-        return self.network.descriptor_image(np.asarray(obs["rgb"]))
+        rgb = np.asarray(obs["rgb"])
+        if not self._size_checked:
+            self._size_checked = True
+            self._warn_on_size_mismatch(rgb.shape[1], rgb.shape[0])
+        return self.network.descriptor_image(rgb)
+
+    def _warn_on_size_mismatch(self, width: int, height: int) -> None:
+        # A DON is not scale invariant: the same view at another resolution shows the part at
+        # another size in pixels than the network learned, and its descriptors degrade.
+        if self.metadata is None or tuple(self.metadata.image_size) == (width, height):
+            return
+        trained_w, trained_h = self.metadata.image_size
+        warnings.warn(
+            f"{self.source}: trained on {trained_w}x{trained_h} images but gets {width}x{height}; "
+            f"make the env with image_size=({trained_w}, {trained_h}) for the descriptors it was trained for",
+            stacklevel=3,
+        )
 
 
 def _unknown_model_message(name: str) -> str:

@@ -19,6 +19,17 @@ from don_gym.errors import DonGymError
 SUBCOMMANDS = ["embed", "build-dataset", "export", "train", "evaluate", "benchmark"]
 
 
+def parse_size(text: str, option: str = "size") -> tuple[int, int]:
+    """``"WIDTHxHEIGHT"`` -> ``(width, height)`` in pixels; a clear error naming ``option`` otherwise."""
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise DonGymError(f"{option} {text!r}: expected WIDTHxHEIGHT in pixels, e.g. 320x240") from None
+    if width < 1 or height < 1:
+        raise DonGymError(f"{option} {text!r}: width and height must be positive")
+    return width, height
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="don-gym",

@@ -66,23 +66,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="1 repeat, the d435 sensor only, no sweep (unless --repeats/--sensors say otherwise)",
     )
-    grasp.add_argument("--image-size", default="320x240", help="wrist camera WIDTHxHEIGHT (default: 320x240)")
+    grasp.add_argument(
+        "--image-size",
+        default=None,
+        help="wrist camera WIDTHxHEIGHT (default: the size the networks were trained at; 320x240 for the oracle alone)",
+    )
     grasp.add_argument("--renderer", default="tiny", help="PyBullet renderer: tiny (default) or egl")
     grasp.add_argument("--seed", type=int, default=0, help="benchmark seed (default: 0)")
     grasp.add_argument("--workers", type=int, default=2, help="worker processes (default: 2)")
     grasp.add_argument("--out", metavar="DIR", default=None, help="write JSON, Markdown and charts here")
     grasp.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(run=run)
-
-
-def _image_size(text: str) -> tuple[int, int]:
-    from don_gym.errors import DonGymError
-
-    try:
-        width, height = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise DonGymError(f"--image-size {text!r}: expected WIDTHxHEIGHT, e.g. 320x240") from None
-    return width, height
 
 
 def default_methods(object_name: str) -> list[str]:
@@ -97,6 +91,7 @@ def default_methods(object_name: str) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     import torch
 
+    from don_gym.cli import parse_size
     from don_gym.errors import DonGymError
     from don_gym.grasp_benchmark import (
         DEFAULT_SENSORS,
@@ -122,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
         poses=tuple(args.poses) if args.poses is not None else tuple(range(len(FIXED_POSES))),
         repeats=repeats,
         sensors=tuple(sensors),
-        image_size=_image_size(args.image_size),
+        image_size=None if args.image_size is None else parse_size(args.image_size, "--image-size"),
         renderer=args.renderer,
         seed=args.seed,
     )

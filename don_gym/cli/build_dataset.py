@@ -6,11 +6,13 @@ import argparse
 
 
 def _size(text: str) -> tuple[int, int]:
+    from don_gym.cli import parse_size
+    from don_gym.errors import DonGymError
+
     try:
-        width, height = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected WIDTHxHEIGHT, e.g. 320x240") from None
-    return width, height
+        return parse_size(text, "--size")
+    except DonGymError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -54,15 +54,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _crop(text: str) -> tuple[int, int] | None:
-    from don_gym.errors import DonGymError
+    from don_gym.cli import parse_size
 
-    if text.lower() == "none":
-        return None
-    try:
-        width, height = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise DonGymError(f"--crop {text!r}: expected WIDTHxHEIGHT (e.g. 160x120) or none") from None
-    return width, height
+    return None if text.lower() == "none" else parse_size(text, "--crop")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -85,8 +79,10 @@ def run(args: argparse.Namespace) -> int:
         threads=args.threads,
     )
     result = train(config, resume=args.resume)
-    print(
-        f"{result.model_path}: {result.steps} steps in {result.seconds:.0f} s "
-        f"({result.images_per_second:.1f} images/s), final loss {result.final_loss:.4g}"
+    timing = (
+        "training time unknown (resumed from an older state)"
+        if result.seconds is None or result.images_per_second is None
+        else f"in {result.seconds:.0f} s ({result.images_per_second:.1f} images/s)"
     )
+    print(f"{result.model_path}: {result.steps} steps {timing}, final loss {result.final_loss:.4g}")
     return 0
