@@ -19,7 +19,7 @@ Learning curves (rolling success rate and return of the training episodes agains
 go to ``benchmarks/figures/rl_ppo_grasp.png`` and ``rl_sac_ee.png``; results to the "rl" section
 of ``benchmarks/RESULTS.md`` (not with ``--quick``). One torch thread (see CONTRIBUTING).
 
-    python benchmarks/bench_rl.py                      # full run (~30 min on 2 cores), records RESULTS.md
+    python benchmarks/bench_rl.py                      # full run (~50 min on 2 cores at 640x480), records RESULTS.md
     python benchmarks/bench_rl.py --only ppo           # one algorithm (records only with both)
     python benchmarks/bench_rl.py --quick              # smoke run, records nothing
 """
@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -49,6 +50,7 @@ FIGURES = Path(__file__).resolve().parent / "figures"
 EVAL_SEED = 100_000
 #: Preferred keypoint model: the shipped supervised network; the oracle until it exists.
 PREFERRED_MODEL = "toolcap/supervised-edge"
+ORACLE_IMAGE_SIZE = (160, 120)  # no network to match: small images keep the oracle runs cheap
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -131,7 +133,7 @@ def run_ppo(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
     curve = trained.curve
     window = max(10, min(50, len(curve.successes) // 5))
     reference = [(f"eval: {name}", r.success_rate, r.mean_return) for name, r in results.items()]
-    figure = FIGURES / "rl_ppo_grasp.png"
+    figure = args.figures / "rl_ppo_grasp.png"
     rl.plot_learning_curve(
         [("PPO training episodes (stochastic policy)", curve)],
         figure,
@@ -150,7 +152,7 @@ def run_ppo(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         f"reward; keypoint-centred actions; PPO rollouts of {n_steps * args.ppo_envs} steps, "
         f"batch {rl.DEFAULT_ALGO_KWARGS['ppo']['batch_size']}, "
         f"{rl.DEFAULT_ALGO_KWARGS['ppo']['n_epochs']} epochs, MLP 64x64, seed {args.seed}. "
-        f"Learning curve: `benchmarks/figures/{figure.name}`.",
+        f"Learning curve: `{_shown(figure)}`.",
         "",
         f"Evaluation on the same {n} held-out episodes (seeds {EVAL_SEED}..{EVAL_SEED + n - 1}):",
         "",
@@ -181,7 +183,7 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
     env.close()
     curve = trained.curve
     window = max(3, min(20, len(curve.successes) // 5))
-    figure = FIGURES / "rl_sac_ee.png"
+    figure = args.figures / "rl_sac_ee.png"
     rl.plot_learning_curve(
         [("SAC training episodes (stochastic policy)", curve)],
         figure,
@@ -196,7 +198,7 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         f"Observation: TCP pose, gripper width and the keypoints of the current wrist image "
         f"(`{keypoint_model}`, {env_kwargs['image_size'][0]}x{env_kwargs['image_size'][1]}, sensor `{args.sensor}`); "
         f"dense reward; SAC learning starts {sac['learning_starts']}, batch {sac['batch_size']}, MLP 128x128, "
-        f"seed {args.seed}. Learning curve: `benchmarks/figures/{figure.name}`.",
+        f"seed {args.seed}. Learning curve: `{_shown(figure)}`.",
         "",
         f"Evaluation on the same {n} held-out episodes (seeds {EVAL_SEED}..{EVAL_SEED + n - 1}); "
         "grasp_only here means the part was lifted at some point but did not end at rest in the cradle:",
@@ -205,6 +207,22 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         *[_row(name, result) for name, result in results.items()],
     ]
     return "\n".join(body), {name: r.success_rate for name, r in results.items()}
+
+
+def _shown(figure: Path) -> str:
+    """A figure's path as RESULTS.md names it (relative to the repository), or as written."""
+    return f"benchmarks/figures/{figure.name}" if figure.parent == FIGURES else str(figure)
+
+
+def keypoint_image_size(keypoint_model: str) -> tuple[int, int]:
+    """(width, height) the keypoint network was trained at; 160x120 for the oracle (no network)."""
+    if keypoint_model == "oracle":
+        return ORACLE_IMAGE_SIZE
+    from don_gym.objects import load_object
+    from don_gym.wrappers import load_descriptor_source
+
+    metadata = getattr(load_descriptor_source(keypoint_model, load_object("toolcap")), "metadata", None)
+    return ORACLE_IMAGE_SIZE if metadata is None else tuple(metadata.image_size)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -220,12 +238,26 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--ppo-steps", type=int, default=1024, help="grasp episodes (one env step each)")
     parser.add_argument("--ppo-eval-episodes", type=int, default=50)
-    parser.add_argument("--ppo-image-size", type=int, nargs=2, default=(160, 120), metavar=("W", "H"))
+    parser.add_argument(
+        "--ppo-image-size",
+        type=int,
+        nargs=2,
+        default=None,
+        metavar=("W", "H"),
+        help="wrist camera size (default: the size the keypoint network was trained at; 160x120 for the oracle)",
+    )
     parser.add_argument("--sac-steps", type=int, default=10000)
     parser.add_argument("--sac-max-steps", type=int, default=100)
     parser.add_argument("--sac-learning-starts", type=int, default=rl.DEFAULT_ALGO_KWARGS["sac"]["learning_starts"])
     parser.add_argument("--sac-eval-episodes", type=int, default=20)
-    parser.add_argument("--sac-image-size", type=int, nargs=2, default=(160, 120), metavar=("W", "H"))
+    parser.add_argument(
+        "--sac-image-size",
+        type=int,
+        nargs=2,
+        default=None,
+        metavar=("W", "H"),
+        help="wrist camera size (default: the size the keypoint network was trained at; 160x120 for the oracle)",
+    )
     parser.add_argument("--quick", action="store_true", help="tiny budgets, records nothing")
     args = parser.parse_args(argv)
     rl.require_sb3()
@@ -233,9 +265,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         args.ppo_steps, args.ppo_eval_episodes = 32, 4
         args.sac_steps, args.sac_max_steps, args.sac_eval_episodes, args.sac_learning_starts = 300, 50, 2, 100
+    # Runs that record nothing keep their figures out of benchmarks/figures too.
+    args.figures = FIGURES if not (args.quick or args.only) else Path(tempfile.mkdtemp(prefix="don_gym_rl_"))
     keypoint_model = args.keypoint_model or (PREFERRED_MODEL if PREFERRED_MODEL in shipped_names() else "oracle")
     if keypoint_model == "oracle":
         print("keypoints from the oracle (true-pose descriptors): a pipeline check, not a perception result")
+    # A DON is not scale invariant: by default the camera shows the part at the network's training size.
+    default_size = keypoint_image_size(keypoint_model)
+    args.ppo_image_size = tuple(args.ppo_image_size or default_size)
+    args.sac_image_size = tuple(args.sac_image_size or default_size)
 
     start = time.perf_counter()
     sections, summary = [], {}
