@@ -43,6 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import record_section  # noqa: E402
 
 from don_gym.agents import AxisGraspAgent, rl  # noqa: E402
+from don_gym.errors import DonGymError  # noqa: E402
 from don_gym.zoo import shipped_names  # noqa: E402
 
 FIGURES = Path(__file__).resolve().parent / "figures"
@@ -225,6 +226,24 @@ def keypoint_image_size(keypoint_model: str) -> tuple[int, int]:
     return ORACLE_IMAGE_SIZE if metadata is None else tuple(metadata.image_size)
 
 
+def _pixels(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a positive number of pixels")
+    return value
+
+
+def _add_image_size_option(parser: argparse.ArgumentParser, algorithm: str) -> None:
+    parser.add_argument(
+        f"--{algorithm}-image-size",
+        type=_pixels,
+        nargs=2,
+        default=None,
+        metavar=("W", "H"),
+        help="wrist camera size (default: the size the keypoint network was trained at; 160x120 for the oracle)",
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--only", choices=rl.ALGORITHMS, help="run one algorithm (then nothing is recorded)")
@@ -238,26 +257,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--ppo-steps", type=int, default=1024, help="grasp episodes (one env step each)")
     parser.add_argument("--ppo-eval-episodes", type=int, default=50)
-    parser.add_argument(
-        "--ppo-image-size",
-        type=int,
-        nargs=2,
-        default=None,
-        metavar=("W", "H"),
-        help="wrist camera size (default: the size the keypoint network was trained at; 160x120 for the oracle)",
-    )
+    _add_image_size_option(parser, "ppo")
     parser.add_argument("--sac-steps", type=int, default=10000)
     parser.add_argument("--sac-max-steps", type=int, default=100)
     parser.add_argument("--sac-learning-starts", type=int, default=rl.DEFAULT_ALGO_KWARGS["sac"]["learning_starts"])
     parser.add_argument("--sac-eval-episodes", type=int, default=20)
-    parser.add_argument(
-        "--sac-image-size",
-        type=int,
-        nargs=2,
-        default=None,
-        metavar=("W", "H"),
-        help="wrist camera size (default: the size the keypoint network was trained at; 160x120 for the oracle)",
-    )
+    _add_image_size_option(parser, "sac")
     parser.add_argument("--quick", action="store_true", help="tiny budgets, records nothing")
     args = parser.parse_args(argv)
     rl.require_sb3()
@@ -271,7 +276,10 @@ def main(argv: list[str] | None = None) -> int:
     if keypoint_model == "oracle":
         print("keypoints from the oracle (true-pose descriptors): a pipeline check, not a perception result")
     # A DON is not scale invariant: by default the camera shows the part at the network's training size.
-    default_size = keypoint_image_size(keypoint_model)
+    try:
+        default_size = keypoint_image_size(keypoint_model)
+    except DonGymError as exc:  # unknown name, checkpoint for another object: say so before any training
+        parser.error(str(exc))
     args.ppo_image_size = tuple(args.ppo_image_size or default_size)
     args.sac_image_size = tuple(args.sac_image_size or default_size)
 
