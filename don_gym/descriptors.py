@@ -21,31 +21,37 @@ reported eigenvalues are converted back to the mesh's units (1/m^2 for a mesh in
 of a single eigenvector is fixed by shape alone (see :func:`_fix_sign`), so permuting vertices does
 not change the descriptor of a surface point.
 
-Speed. ``method="direct"`` is shift-invert Lanczos (``scipy.sparse.linalg.eigsh``, SuperLU) on the
-full mesh. ``method="multilevel"`` (the default above :data:`DIRECT_MAX_VERTICES` vertices) is a
-nested two-grid eigensolver:
+Speed. ``method="direct"`` builds robust_laplacian's Laplacian of the whole mesh and runs
+shift-invert Lanczos (``scipy.sparse.linalg.eigsh``, SuperLU) on it. ``method="multilevel"`` (the
+default above :data:`DIRECT_MAX_VERTICES` vertices) solves on a coarser mesh and transfers:
 
-1. *Coarse meshes by vertex clustering.* Vertices are grouped by a voxel grid, split into
-   connected pieces inside each voxel (so two sheets of a thin wall never merge). Each cluster's
-   vertex nearest to its centroid becomes a coarse vertex; every fine face whose three vertices lie
-   in three clusters becomes a coarse face. Repeated until the mesh is small (about
-   :data:`_COARSEST_VERTICES`).
-2. *Linear prolongation* ``P`` (fine x coarse): each fine vertex takes the barycentric coordinates
+1. *Coarse mesh by vertex clustering.* Vertices are grouped by a voxel grid (about
+   :data:`_CLUSTER_SIZE` per cluster, fewer where that would leave under
+   :data:`_MIN_COARSE_VERTICES` clusters), split into connected pieces inside each voxel (so two
+   sheets of a thin wall never merge). Each cluster's vertex nearest to its centroid becomes a
+   coarse vertex; every fine face whose three vertices lie in three clusters becomes a coarse face.
+   Coarse meshes above :data:`_COARSEST_VERTICES` vertices are coarsened again.
+2. *The coarse eigenproblem* uses robust_laplacian's intrinsic-Delaunay Laplacian of the coarse
+   mesh: clustered meshes are badly shaped (slivers, folds, non-manifold edges), which is what it is
+   made for. The coarsest one is solved directly.
+3. *Linear prolongation* ``P`` (fine x coarse): each fine vertex takes the barycentric coordinates
    of its projection onto the coarse face (around its cluster's coarse vertex) it lies most inside
-   of. These piecewise linear "hat" functions approximate smooth eigenfunctions to second order,
-   unlike plain (smoothed) aggregation: Galerkin eigenvalues come out within ~1 % instead of
-   40-100 % too high.
-3. *Galerkin coarse operators* ``P^T L P`` and ``P^T M P`` (no second Laplacian needed); the coarsest
-   problem is solved directly.
-4. *Refinement*: the prolonged eigenvectors start a block LOBPCG (Knyazev 2001) on each finer level,
-   preconditioned by a two-grid cycle (Jacobi smoothing + exact solve with the next coarser
-   operator). It stops when an iteration moves every needed eigenvector by less than
-   :data:`_REFINE_TOL` (M-norm; descriptors then agree with the direct solver to ~0.005),
-   typically after 2-4 iterations; if it does not converge, the direct solver is used instead.
+   of. These piecewise linear "hat" functions approximate smooth eigenfunctions to second order.
+4. *Refinement on the fine mesh*: the prolonged eigenvectors start a block LOBPCG (Knyazev 2001),
+   preconditioned by a two-grid cycle (Jacobi smoothing + exact solve with the coarse Laplacian),
+   in single precision. It stops when the estimated remaining error of every needed eigenvector is
+   below :data:`_REFINE_TOL` (M-norm), typically after 2-3 iterations; if it does not converge, the
+   direct solver is used instead.
 
-Measured (``benchmarks/bench_descriptors.py``, RESULTS.md, 2 cores): descriptors within 0.01 of
-the direct solver's and 1.9-3.4x faster at 38k-152k vertices. Building the intrinsic-Delaunay
-Laplacian, which both need, takes 25-50 % of ``embed``'s time and bounds the speed-up to 4-7x.
+   The fine-level operator is the cotangent Laplacian (:func:`cotan_laplacian`) when the mesh meets
+   the maximum-angle condition (no angle above 170 degrees, no edge in three faces): that is the
+   intrinsic-Delaunay Laplacian on meshes that are already intrinsically Delaunay, and on the others
+   its smallest eigenvectors agree with robust_laplacian's to ~3e-4 (benchmark meshes). Otherwise
+   robust_laplacian's Laplacian of the whole mesh is built, as for the direct solver, and costs
+   about as much as the rest of the multilevel solve.
+
+Measured (``benchmarks/bench_descriptors.py``, RESULTS.md, 2-core CPU): descriptors within 0.01 of
+the direct solver's and over 5x faster from 38k vertices up.
 """
 
 from __future__ import annotations
@@ -54,7 +60,7 @@ import hashlib
 import json
 import math
 import zipfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -87,12 +93,20 @@ CONSTANT_GROUP_RTOL = 0.1
 
 _FORMAT_VERSION = 1
 # Multilevel solver settings (see module docstring).
-_COARSEST_VERTICES = 4000  # solve directly at or below this size
+_COARSEST_VERTICES = 8000  # solve directly at or below this size
 _CLUSTER_SIZE = 24.0  # target fine vertices per coarse vertex (voxel area in units of vertex area)
-_REFINE_TOL = 3e-3  # stop refining when an iteration changes each needed eigenvector by less (M-norm)
+_MIN_COARSE_VERTICES = 2000  # smaller clusters where 24 would give fewer coarse vertices
+_REFINE_TOL = 2e-3  # stop refining when each needed eigenvector's estimated error is below (M-norm)
 _REFINE_TOL_COARSE = 1e-2  # the same on intermediate levels, which only give starting vectors
 _REFINE_MAXITER = 12
+_COTAN_MAX_ANGLE = math.radians(170.0)  # finest-level operator: cotangent Laplacian below this
 _JACOBI_OMEGA = 2.0 / 3.0
+# The refinement needs eigenvectors to ~1e-3: single precision halves the memory traffic of its
+# sparse and dense products; Rayleigh-Ritz matrices are solved in double precision.
+_REFINE_DTYPE = np.float32
+_GRAM_RTOL = 1e-6  # Rayleigh-Ritz drops directions whose Gram eigenvalue is below this (relative)
+_PRECONDITIONER_SHIFT = 1.0  # sigma of L + sigma*M on unit-area meshes (lambda_1 ~ 0.3-25)
+_MAX_RATE = 0.9  # cap of the estimated LOBPCG convergence rate (error estimate <= 9 x last step)
 _GUARD = 4
 #: embed gives up (MeshError) when this many eigenpairs (or 8 * dim) still do not close dim groups.
 _MAX_EIGENPAIRS = 64
@@ -344,7 +358,8 @@ def normalize_to_unit_area(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.
     area = float(face_area.sum())
     if not area > 0 or not np.isfinite(area):
         raise MeshError(f"mesh has surface area {area:g}; expected a positive area (all faces are degenerate)")
-    centroid = (face_area[:, None] * tri.mean(axis=1)).sum(axis=0) / area
+    face_centroid = (tri[:, 0] + tri[:, 1] + tri[:, 2]) / 3.0  # = tri.mean(axis=1), bit for bit, faster
+    centroid = (face_area[:, None] * face_centroid).sum(axis=0) / area
     return (vertices - centroid) / math.sqrt(area), area
 
 
@@ -363,29 +378,74 @@ def mesh_laplacian(vertices: np.ndarray, faces: np.ndarray) -> tuple[sp.csr_matr
     return sp.csr_matrix(L), mass
 
 
-def _mul(B: np.ndarray | sp.spmatrix, X: np.ndarray) -> np.ndarray:
-    """Mass matrix times block: ``B`` is a diagonal (1-D) or a sparse matrix."""
-    return B[:, None] * X if isinstance(B, np.ndarray) else B @ X
+def cotan_laplacian(
+    vertices: np.ndarray, faces: np.ndarray, max_angle: float = _COTAN_MAX_ANGLE
+) -> tuple[sp.csr_matrix, np.ndarray] | None:
+    """Cotangent Laplacian ``L`` (N, N) CSR and barycentric lumped mass ``M`` (N,) (a third of the
+    area of each face at a vertex), in the units of ``vertices`` (L is scale-free, M in unit^2);
+    None when the cotangent Laplacian is not reliable for this mesh: an angle above ``max_angle``
+    (radians), a face of zero area, or an edge in more than two faces.
+
+    On a mesh that is already intrinsically Delaunay this is the pair :func:`mesh_laplacian`
+    (robust_laplacian) returns, up to its mollification (~1e-5 relative). On other meshes that meet
+    the maximum-angle condition, under which linear finite elements, hence this Laplacian, converge
+    (Babuska & Aziz 1976), both are consistent discretisations of the Laplace-Beltrami operator
+    and their smallest eigenvectors agree closely; it takes a tenth of robust_laplacian's time.
+    Needles, caps, folds and non-manifold edges are what robust_laplacian is made for.
+    """
+    n = len(vertices)
+    corners = np.ascontiguousarray(vertices.T)[:, faces]  # (3 coordinates, F, 3 corners)
+    # Edge k is opposite corner k; its squared length and the face's doubled area give the
+    # cotangent at corner k: (|a|^2 + |b|^2 - |e_k|^2) / (4 area) for its two other edges a, b.
+    edge = [corners[:, :, (k + 2) % 3] - corners[:, :, (k + 1) % 3] for k in range(3)]
+    length2 = [np.einsum("ij,ij->j", e, e) for e in edge]
+    normal = np.cross(edge[2], edge[1], axis=0)
+    twice_area = np.sqrt(np.einsum("ij,ij->j", normal, normal))
+    if not np.all(twice_area > 0):
+        return None
+    lowest_cot = 1.0 / math.tan(max_angle) if max_angle < math.pi else -np.inf
+    rows, cols, weights = [], [], []
+    for k in range(3):
+        cot = (length2[(k + 1) % 3] + length2[(k + 2) % 3] - length2[k]) / (2.0 * twice_area)
+        if not np.all(cot >= lowest_cot):  # also catches non-finite values
+            return None
+        weights.append(0.5 * cot)  # half the cotangent of the angle at corner k weighs the opposite edge
+        rows.append(faces[:, (k + 1) % 3])
+        cols.append(faces[:, (k + 2) % 3])
+    i, j, w = np.concatenate(rows), np.concatenate(cols), np.concatenate(weights)
+    low, high = np.minimum(i, j), np.maximum(i, j)
+    faces_per_edge = sp.csr_matrix((np.ones(len(w)), (low, high)), shape=(n, n))
+    if faces_per_edge.nnz and faces_per_edge.data.max() > 2:
+        return None
+    upper = sp.csr_matrix((-w, (low, high)), shape=(n, n))
+    off = upper + upper.T
+    L = sp.csr_matrix(off - sp.diags(np.asarray(off.sum(axis=1)).ravel()))
+    mass = np.bincount(faces.ravel(), np.repeat(twice_area / 6.0, 3), minlength=n)
+    return L, mass
 
 
-def _direct_eigenpairs(L: sp.spmatrix, B: np.ndarray | sp.spmatrix, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """Smallest ``count`` non-constant eigenpairs of ``L y = lambda B y`` for a connected mesh
-    (normalised to unit area, so eigenvalues are O(10) and a fixed small shift is safe)."""
+def _direct_eigenpairs(
+    L: sp.spmatrix, mass: np.ndarray, count: int, shift: float = 1e-6, factor: object | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Smallest ``count`` non-constant eigenpairs of ``L y = lambda M y`` (``mass`` the diagonal of M)
+    for a connected mesh normalised to unit area (eigenvalues O(1-100)).
+
+    Shift-invert Lanczos about ``-shift``; ``factor`` is a factorisation of ``L + shift * M`` (its
+    ``solve``) when the caller has one, else it is computed.
+    """
     n = L.shape[0]
-    Bm = sp.diags(B) if isinstance(B, np.ndarray) else B
+    Bm = sp.diags(mass)
     if n <= 100 or count + 1 >= n - 1:
         # Tiny, or every eigenpair wanted: dense generalised symmetric eigensolver.
         w, Y = scipy.linalg.eigh(L.toarray(), Bm.toarray())
     else:
-        # Shift-invert Lanczos about a point just below 0 (the shift keeps L - sigma*B non-singular),
-        # with our own factorisation of the symmetric positive definite L - sigma*B. A fixed start
-        # vector (ARPACK's default is random) makes results, and so field hashes, reproducible.
-        sigma = -1e-6
-        lu = _factorize_spd(L - sigma * Bm)
-        solve = spla.LinearOperator((n, n), matvec=lu.solve, dtype=np.float64)
+        # L + shift*M is symmetric positive definite (L alone is singular on constants). A fixed
+        # start vector (ARPACK's default is random) makes results, and so field hashes, reproducible.
+        factor = factor if factor is not None else _factorize_spd(L + shift * Bm)
+        solve = spla.LinearOperator((n, n), matvec=factor.solve, dtype=np.float64)
         start = 1.0 + 0.5 * np.sin(np.arange(n, dtype=np.float64))
         w, Y = spla.eigsh(
-            sp.csc_matrix(L), k=count + 1, M=sp.csc_matrix(Bm), sigma=sigma, which="LM", OPinv=solve, v0=start
+            sp.csc_matrix(L), k=count + 1, M=sp.csc_matrix(Bm), sigma=-shift, which="LM", OPinv=solve, v0=start
         )
         order = np.argsort(w)
         w, Y = w[order], Y[:, order]
@@ -410,9 +470,7 @@ def _cluster(vertices: np.ndarray, edges: np.ndarray, voxel: float) -> tuple[int
     _, voxel_id = np.unique(key, return_inverse=True)
     voxel_id = voxel_id.ravel()
     inside = voxel_id[edges[:, 0]] == voxel_id[edges[:, 1]]
-    n = len(vertices)
-    graph = sp.coo_matrix((np.ones(int(inside.sum())), (edges[inside, 0], edges[inside, 1])), shape=(n, n))
-    return connected_components(graph, directed=False)
+    return _connected_pieces(len(vertices), edges[inside])
 
 
 def _coarsen(vertices: np.ndarray, faces: np.ndarray, cluster_size: float):
@@ -425,12 +483,17 @@ def _coarsen(vertices: np.ndarray, faces: np.ndarray, cluster_size: float):
     centroid = np.stack([np.bincount(label, vertices[:, d], minlength=n_coarse) for d in range(3)], 1)
     centroid /= count[:, None]
     # Coarse vertex = the cluster's vertex nearest its centroid (lies on the surface).
-    dist = np.linalg.norm(vertices - centroid[label], axis=1)
-    order = np.lexsort((dist, label))
-    first = np.ones(n, dtype=bool)
-    first[1:] = label[order][1:] != label[order][:-1]
+    offset = vertices - centroid[label]
+    dist2 = np.einsum("ij,ij->i", offset, offset)
+    by_cluster = np.argsort(label, kind="stable")
+    group_start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    nearest = np.minimum.reduceat(dist2[by_cluster], group_start)
+    # First vertex (in vertex order, for ties) of each cluster at its smallest distance.
+    candidate = by_cluster[dist2[by_cluster] == np.repeat(nearest, count)]
+    first = np.ones(len(candidate), dtype=bool)
+    first[1:] = label[candidate][1:] != label[candidate][:-1]
     representative = np.empty(n_coarse, dtype=np.int64)
-    representative[label[order[first]]] = order[first]
+    representative[label[candidate[first]]] = candidate[first]
     coarse_vertices = vertices[representative]
 
     corner = label[faces]
@@ -459,22 +522,34 @@ def _coarsen(vertices: np.ndarray, faces: np.ndarray, cluster_size: float):
     with np.errstate(divide="ignore"):
         inv_det = 1.0 / (d11 * d22 - d12 * d12)
     inv_det[~np.isfinite(inv_det)] = 0.0  # degenerate coarse face: all weight on its first vertex
-    best_inside = np.full(n, -np.inf)
-    best_bary = np.zeros((n, 3))
-    best_face = np.full(n, -1, dtype=np.int64)
+    # Coordinates 2 and 3 are affine in the point: x . g - o.
+    g1 = (d22[:, None] * e1 - d12[:, None] * e2) * inv_det[:, None]
+    g2 = (d11[:, None] * e2 - d12[:, None] * e1) * inv_det[:, None]
+    o1, o2 = np.einsum("ij,ij->i", origin, g1), np.einsum("ij,ij->i", origin, g2)
+    # Fine vertices sorted by the number of candidate faces, so that pass j works on a prefix.
     vertex_degree = degree[label]
+    by_degree = np.argsort(-vertex_degree, kind="stable")
+    sorted_degree = vertex_degree[by_degree]
+    first_face = start[label[by_degree]]
+    points = vertices[by_degree]
+    best_inside = np.full(n, -np.inf)
+    best_v, best_w = np.zeros(n), np.zeros(n)
+    best_face = np.full(n, -1, dtype=np.int64)
     for j in range(int(degree.max()) if len(degree) else 0):
-        idx = np.flatnonzero(vertex_degree > j)
-        face = inc_face[start[label[idx]] + j]
-        rel = vertices[idx] - origin[face]
-        r1, r2 = np.einsum("ij,ij->i", rel, e1[face]), np.einsum("ij,ij->i", rel, e2[face])
-        v = (d22[face] * r1 - d12[face] * r2) * inv_det[face]
-        w = (d11[face] * r2 - d12[face] * r1) * inv_det[face]
-        bary = np.stack([1.0 - v - w, v, w], axis=1)
-        inside = bary.min(axis=1)
-        better = inside > best_inside[idx]
-        chosen = idx[better]
-        best_inside[chosen], best_bary[chosen], best_face[chosen] = inside[better], bary[better], face[better]
+        m = int(np.searchsorted(-sorted_degree, -j, side="left"))  # vertices with more than j faces
+        face = inc_face[first_face[:m] + j]
+        p = points[:m]
+        v = np.einsum("ij,ij->i", p, g1[face]) - o1[face]
+        w = np.einsum("ij,ij->i", p, g2[face]) - o2[face]
+        inside = np.minimum(np.minimum(v, w), 1.0 - v - w)
+        better = inside > best_inside[:m]
+        for best, new in ((best_inside, inside), (best_v, v), (best_w, w), (best_face, face)):
+            np.copyto(best[:m], new, where=better)
+    best_bary = np.empty((n, 3))
+    best_bary[by_degree] = np.stack([1.0 - best_v - best_w, best_v, best_w], axis=1)
+    face_of_vertex = np.empty_like(best_face)
+    face_of_vertex[by_degree] = best_face
+    best_face = face_of_vertex
     np.clip(best_bary, 0.0, None, out=best_bary)
     total = best_bary.sum(axis=1, keepdims=True)
     best_bary = np.divide(best_bary, total, out=np.tile([[1.0, 0.0, 0.0]], (n, 1)), where=total > 0)
@@ -497,77 +572,99 @@ def _coarsen(vertices: np.ndarray, faces: np.ndarray, cluster_size: float):
     return coarse_vertices, coarse_faces, P
 
 
-@dataclass
+def _drop_unreferenced(
+    vertices: np.ndarray, faces: np.ndarray, P: sp.csr_matrix
+) -> tuple[np.ndarray, np.ndarray, sp.csr_matrix]:
+    """Remove coarse vertices in no coarse face (they would get zero mass); the fine vertices that
+    followed one follow the nearest remaining coarse vertex instead."""
+    referenced = np.zeros(len(vertices), dtype=bool)
+    referenced[faces.ravel()] = True
+    if referenced.all():
+        return vertices, faces, P
+    kept = np.flatnonzero(referenced)
+    column = np.empty(len(vertices), dtype=np.int64)
+    column[kept] = np.arange(len(kept))
+    column[~referenced] = cKDTree(vertices[kept]).query(vertices[~referenced])[1]
+    P = sp.csr_matrix((P.data, column[P.indices], P.indptr), shape=(P.shape[0], len(kept)))
+    P.sum_duplicates()
+    return vertices[kept], column[faces], P
+
+
 class _Level:
-    L: sp.csr_matrix
-    B: np.ndarray | sp.csr_matrix  # mass: diagonal (finest level) or sparse (Galerkin levels)
-    P: sp.csr_matrix | None = None  # prolongation from the next coarser level
-    PT: sp.csr_matrix | None = None
-    coarse_lu: object | None = None  # splu of the next coarser level's L + sigma*B
-    shifted: sp.csr_matrix | None = None  # L + sigma*B
-    jacobi: np.ndarray | None = None  # omega / diag(L + sigma*B)
-
-
-class _Multilevel:
-    """Hierarchy of Galerkin coarse problems; :meth:`eigenpairs` solves with nested refinement."""
+    """One mesh of the nested solver: its Laplacian ``L`` and lumped mass, and above
+    :data:`_COARSEST_VERTICES` vertices the next coarser mesh (vertex clustering) with its
+    prolongation ``P`` and its own intrinsic-Delaunay Laplacian. Clustered meshes are badly shaped
+    (slivers, folds, non-manifold edges), which is what robust_laplacian is made for."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, L: sp.csr_matrix, mass: np.ndarray):
-        self.levels = [_Level(L, mass)]
-        self.sigma: float | None = None
-        self.iterations: list[int] = []
-        v, f = vertices, faces
-        while self.levels[-1].L.shape[0] > _COARSEST_VERTICES:
-            fine = self.levels[-1]
-            cv, cf, P = _coarsen(v, f, _CLUSTER_SIZE)
-            if P.shape[1] > 0.5 * P.shape[0] or len(cf) == 0:
-                raise _CoarseningFailed(f"coarsening {P.shape[0]} -> {P.shape[1]} vertices")
-            PT = sp.csr_matrix(P.T)
-            coarse_L = sp.csr_matrix(PT @ fine.L @ P)
-            coarse_B = sp.csr_matrix(PT @ ((sp.diags(fine.B) if isinstance(fine.B, np.ndarray) else fine.B) @ P))
-            fine.P, fine.PT = P, PT
-            self.levels.append(_Level(coarse_L, coarse_B))
-            v, f = cv, cf
+        self.L, self.mass = L, mass
+        self.coarse: _Level | None = None
+        self.P = self.PT = None  # prolongation from the coarse level and its transpose
+        self.iterations: list[int] = []  # LOBPCG iterations of the last solve, finest level last
+        self._coarse_lu = None  # splu of the coarse level's L + sigma*M
+        if L.shape[0] <= _COARSEST_VERTICES:
+            return
+        # Fewer than ~2000 coarse vertices resolve a block of ~10 eigenvectors too poorly: the
+        # refinement then takes 8-10 iterations instead of 2-3.
+        cluster_size = min(_CLUSTER_SIZE, L.shape[0] / _MIN_COARSE_VERTICES)
+        coarse_vertices, coarse_faces, P = _coarsen(vertices, faces, cluster_size)
+        if P.shape[1] > 0.5 * P.shape[0] or len(coarse_faces) == 0:
+            raise _CoarseningFailed(f"coarsening {P.shape[0]} -> {P.shape[1]} vertices")
+        coarse_vertices, coarse_faces, P = _drop_unreferenced(coarse_vertices, coarse_faces, P)
+        if _components(len(coarse_vertices), coarse_faces)[0] > 1:
+            raise _CoarseningFailed("the coarse mesh falls apart into several pieces")
+        self.P, self.PT = P, sp.csr_matrix(P.T)
+        self.coarse = _Level(coarse_vertices, coarse_faces, *mesh_laplacian(coarse_vertices, coarse_faces))
 
-    def _prepare(self, lambda1: float) -> None:
-        # Shift so that L + sigma*B is positive definite (L is singular on constants).
-        self.sigma = 0.5 * lambda1
-        for level in self.levels:
-            Bm = sp.diags(level.B) if isinstance(level.B, np.ndarray) else level.B
-            level.shifted = sp.csr_matrix(level.L + self.sigma * Bm)
-            level.jacobi = _JACOBI_OMEGA / level.shifted.diagonal()
-        for fine, coarse in zip(self.levels[:-1], self.levels[1:], strict=True):
-            fine.coarse_lu = _factorize_spd(coarse.shifted)
+    @property
+    def size(self) -> int:
+        return self.L.shape[0]
 
-    def _preconditioner(self, level: _Level) -> Callable[[np.ndarray], np.ndarray]:
-        A, d, P, PT, lu = level.shifted, level.jacobi[:, None], level.P, level.PT, level.coarse_lu
+    def _refines(self, block: int) -> bool:
+        # The coarse level must still resolve the block (8 vertices per vector).
+        return self.coarse is not None and self.coarse.size >= 8 * block
 
-        def apply(R: np.ndarray) -> np.ndarray:
-            # Symmetric two-grid cycle for (L + sigma B)^-1: Jacobi, coarse correction, Jacobi.
-            X = d * R
-            X += P @ lu.solve(np.asarray(PT @ (R - A @ X)))
-            X += d * (R - A @ X)
-            return X
+    def _prepare(self) -> None:
+        # L + sigma*M is positive definite (L is singular on constants); the same factorisation of
+        # the coarse one serves the coarse eigensolve and the coarse correction.
+        shifted = sp.csr_matrix(self.L + sp.diags(_PRECONDITIONER_SHIFT * self.mass))
+        self._shifted = shifted.astype(_REFINE_DTYPE)
+        self._jacobi = (_JACOBI_OMEGA / shifted.diagonal()).astype(_REFINE_DTYPE)[:, None]
+        self._P_single, self._PT_single = self.P.astype(_REFINE_DTYPE), self.PT.astype(_REFINE_DTYPE)
+        coarse = self.coarse
+        self._coarse_lu = _factorize_spd(coarse.L + sp.diags(_PRECONDITIONER_SHIFT * coarse.mass))
 
-        return apply
+    def _precondition(self, R: np.ndarray) -> np.ndarray:
+        # Symmetric two-grid cycle for (L + sigma M)^-1: Jacobi, coarse correction, Jacobi.
+        A, d = self._shifted, self._jacobi
+        X = d * R
+        coarse_residual = np.asarray(self._PT_single @ (R - A @ X), dtype=np.float64)
+        X += self._P_single @ self._coarse_lu.solve(coarse_residual).astype(_REFINE_DTYPE)
+        X += d * (R - A @ X)
+        return X
 
-    def eigenpairs(self, count: int) -> tuple[np.ndarray, np.ndarray]:
+    def eigenpairs(
+        self, count: int, block: int | None = None, tol: float = _REFINE_TOL
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Smallest ``block`` non-constant eigenpairs, of which the first ``count`` are converged
+        to ``tol``: solved on the coarse level (recursively), prolonged, and refined here by
+        preconditioned LOBPCG."""
         # Guard vectors: the last wanted eigenpairs converge at the rate of their gap to the block's end.
-        block = count + max(_GUARD, count // 2)
-        # Solve directly on the coarsest level that still resolves the block (8 vertices per vector).
-        start = max((d for d, level in enumerate(self.levels) if level.L.shape[0] >= 8 * block), default=None)
-        if start is None or start == 0:
+        block = block or count + max(_GUARD, count // 2)
+        if not self._refines(block):
             raise _CoarseningFailed(f"{block} eigenvectors need a coarse level of at least {8 * block} vertices")
-        w, Y = _direct_eigenpairs(self.levels[start].L, self.levels[start].B, block)
-        if self.sigma is None:
-            self._prepare(float(w[0]))
-        self.iterations = []
-        for depth in range(start - 1, -1, -1):
-            level = self.levels[depth]
-            X = level.P @ Y
-            tol = _REFINE_TOL if depth == 0 else _REFINE_TOL_COARSE
-            w, Y, iterations = _lobpcg(level.L, level.B, X, self._preconditioner(level), count, tol)
-            self.iterations.append(iterations)
-        return w[:count], Y[:, :count]
+        coarse = self.coarse
+        if self._coarse_lu is None:
+            self._prepare()
+        if coarse._refines(block):
+            w, Y = coarse.eigenpairs(count, block, _REFINE_TOL_COARSE)
+            self.iterations = coarse.iterations
+        else:
+            w, Y = _direct_eigenpairs(coarse.L, coarse.mass, block, _PRECONDITIONER_SHIFT, self._coarse_lu)
+            self.iterations = []
+        w, Y, iterations = _lobpcg(self.L, self.mass, self.P @ Y, self._precondition, count, tol)
+        self.iterations = [*self.iterations, iterations]
+        return w, Y
 
 
 class _CoarseningFailed(RuntimeError):
@@ -578,20 +675,19 @@ class _NotConverged(RuntimeError):
     pass
 
 
-def _rayleigh_ritz(blocks: Sequence[np.ndarray], Bblocks: Sequence[np.ndarray], Ablocks: Sequence[np.ndarray], m: int):
-    """Ritz values and coefficients (sum of block widths, m) of the m smallest Ritz pairs in the span
-    of ``blocks``; near-dependent directions are dropped (orthogonalisation by eigendecomposition of
-    the Gram matrix, which stays stable when LOBPCG's blocks become nearly dependent)."""
-    nb = len(blocks)
-    G = np.block([[blocks[i].T @ Bblocks[j] for j in range(nb)] for i in range(nb)])
-    H = np.block([[blocks[i].T @ Ablocks[j] for j in range(nb)] for i in range(nb)])
+def _rayleigh_ritz(S: np.ndarray, AS: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Ritz values (m,) and coefficients (k, m) of the m smallest Ritz pairs of a symmetric ``A`` in
+    the span of the columns of ``S`` (n, k), given ``A S``; near-dependent directions are dropped
+    (orthogonalisation by eigendecomposition of the Gram matrix, which stays stable when LOBPCG's
+    blocks become nearly dependent)."""
+    G, H = (S.T @ S).astype(np.float64), (S.T @ AS).astype(np.float64)
     G, H = (G + G.T) / 2, (H + H.T) / 2
     scale = np.sqrt(np.abs(np.diag(G)))
     scale[scale == 0] = 1.0
     G = G / scale[:, None] / scale[None, :]
     H = H / scale[:, None] / scale[None, :]
     g, U = np.linalg.eigh(G)
-    keep = g > 1e-10 * g.max()
+    keep = g > _GRAM_RTOL * g.max()
     T = U[:, keep] / np.sqrt(g[keep])
     lam, V = np.linalg.eigh(T.T @ H @ T)
     return lam[:m], (T @ V[:, :m]) / scale[:, None]
@@ -599,48 +695,70 @@ def _rayleigh_ritz(blocks: Sequence[np.ndarray], Bblocks: Sequence[np.ndarray], 
 
 def _lobpcg(
     A: sp.csr_matrix,
-    B: np.ndarray | sp.csr_matrix,
-    X: np.ndarray,
+    mass: np.ndarray,
+    X0: np.ndarray,
     precond: Callable[[np.ndarray], np.ndarray],
     n_check: int,
     tol: float,
 ) -> tuple[np.ndarray, np.ndarray, int]:
-    """Block LOBPCG (Knyazev 2001) for the smallest eigenpairs of ``A x = lambda B x`` orthogonal to
-    constants, from the start block ``X``. Converged when an iteration moves each of the first
-    ``n_check`` Ritz vectors by less than ``tol`` (B-norm) outside the previous block; raises
-    _NotConverged after :data:`_REFINE_MAXITER` iterations."""
-    n, m = X.shape
-    ones = np.ones((n, 1))
-    ones /= math.sqrt(float((ones.T @ _mul(B, ones))[0, 0]))
+    """Block LOBPCG (Knyazev 2001) for the smallest eigenpairs of ``A x = lambda M x`` (``mass`` the
+    diagonal of M) orthogonal to constants, from the start block ``X0`` (n, m); ``precond``
+    approximates ``(A + sigma M)^-1``. Converged when the estimated remaining error of each of the
+    first ``n_check`` Ritz vectors is below ``tol`` (M-norm); raises _NotConverged after
+    :data:`_REFINE_MAXITER` iterations.
+
+    Returns ``(Ritz values (m,), Ritz vectors (n, m) M-orthonormal, iterations)``."""
+    n, m = X0.shape
+    # Solved for z = M^(1/2) x, an ordinary symmetric eigenproblem (M is diagonal): no M-products
+    # to carry along, and the M-norm of x is the 2-norm of z.
+    root = np.sqrt(mass).astype(_REFINE_DTYPE)[:, None]
+    A = A.astype(_REFINE_DTYPE)
+
+    def apply_A(Z: np.ndarray) -> np.ndarray:
+        return (A @ (Z / root)) / root
+
+    constant = root / np.float32(math.sqrt(float(mass.sum())))
 
     def deflate(Z: np.ndarray) -> np.ndarray:
-        return Z - ones @ (ones.T @ _mul(B, Z))
+        return Z - constant @ (constant.T @ Z)
 
-    X = deflate(X)
-    BX, AX = _mul(B, X), A @ X
-    lam, C = _rayleigh_ritz([X], [BX], [AX], m)
-    X, BX, AX = X @ C, BX @ C, AX @ C
-    Pd = BPd = APd = None
+    # The blocks X, W (preconditioned residuals) and P (last step) sit side by side in one array,
+    # and their A-products in another, so that the Rayleigh-Ritz matrices and the updates are
+    # single matrix products.
+    S, AS = np.empty((n, 3 * m), _REFINE_DTYPE), np.empty((n, 3 * m), _REFINE_DTYPE)
+    S[:, :m] = deflate(root * X0.astype(_REFINE_DTYPE))
+    AS[:, :m] = apply_A(S[:, :m])
+    lam, C = _rayleigh_ritz(S[:, :m], AS[:, :m], m)
+    for block in (S, AS):
+        block[:, :m] = block[:, :m] @ C.astype(_REFINE_DTYPE)
+    width = 2 * m  # no P block before the first step
+    previous_step = None
+    remaining = np.inf
     for iteration in range(1, _REFINE_MAXITER + 1):
-        W = deflate(precond(AX - BX * lam))
-        BW, AW = _mul(B, W), A @ W
-        # A- and B-products of the new blocks are updated with the same coefficients (small
-        # dense products) instead of being recomputed with the sparse matrices.
-        if Pd is None:
-            lam, C = _rayleigh_ritz([X, W], [BX, BW], [AX, AW], m)
-            Pd, BPd, APd = W @ C[m:], BW @ C[m:], AW @ C[m:]
-        else:
-            lam, C = _rayleigh_ritz([X, W, Pd], [BX, BW, BPd], [AX, AW, APd], m)
-            Cw, Cp = C[m : 2 * m], C[2 * m :]
-            Pd, BPd, APd = W @ Cw + Pd @ Cp, BW @ Cw + BPd @ Cp, AW @ Cw + APd @ Cp
-        Cx = C[:m]
-        X, BX, AX = X @ Cx + Pd, BX @ Cx + BPd, AX @ Cx + APd
-        # Size of this step outside the previous subspace (X is B-orthonormal): with linear
-        # convergence it bounds the remaining error of each needed eigenvector.
-        step = float(np.sqrt(np.max(np.einsum("ij,ij->j", Pd[:, :n_check], BPd[:, :n_check]))))
-        if step < tol:
-            return lam, X, iteration
-    raise _NotConverged(f"LOBPCG did not converge in {_REFINE_MAXITER} iterations (last step {step:.1e})")
+        residual = AS[:, :m] - S[:, :m] * lam.astype(_REFINE_DTYPE)
+        W = deflate(root * precond(root * residual))
+        S[:, m : 2 * m], AS[:, m : 2 * m] = W, apply_A(W)
+        lam, C = _rayleigh_ritz(S[:, :width], AS[:, :width], m)
+        # A-products are updated with the same coefficients as the vectors (dense products)
+        # instead of being recomputed with the sparse matrix.
+        C = C.astype(_REFINE_DTYPE)
+        for block in (S, AS):
+            new_x = block[:, :width] @ C
+            block[:, 2 * m :] = block[:, m:width] @ C[m:]
+            block[:, :m] = new_x
+        width = 3 * m
+        # Size of this step outside the previous subspace (X is orthonormal), per needed vector.
+        # Convergence is linear, so the remaining error is the geometric tail step * r / (1 - r)
+        # with the rate r estimated from the last two steps.
+        step_needed = S[:, 2 * m : 2 * m + n_check]
+        step = np.sqrt(np.einsum("ij,ij->j", step_needed, step_needed, dtype=np.float64))
+        if previous_step is not None:
+            rate = np.minimum(step / np.maximum(previous_step, 1e-300), _MAX_RATE)
+            remaining = float(np.max(step * rate / (1.0 - rate)))
+            if remaining < tol:
+                return lam, (S[:, :m] / root).astype(np.float64), iteration
+        previous_step = step
+    raise _NotConverged(f"LOBPCG did not converge in {_REFINE_MAXITER} iterations (error estimate {remaining:.1e})")
 
 
 def laplacian_eigenpairs(
@@ -655,37 +773,51 @@ def laplacian_eigenpairs(
         vertices: (N, 3) float, any unit (solved on a copy scaled to unit area).
         faces: (F, 3) int, every vertex referenced.
         count: number of eigenpairs after the constant one.
-        method: ``"direct"`` (shift-invert Lanczos; dense up to 100 vertices), ``"multilevel"``
-            (module docstring) or ``"auto"`` (direct below :data:`DIRECT_MAX_VERTICES` vertices).
+        method: ``"direct"`` (robust_laplacian + shift-invert Lanczos; dense up to 100 vertices),
+            ``"multilevel"`` (module docstring) or ``"auto"`` (direct below
+            :data:`DIRECT_MAX_VERTICES` vertices).
 
     Returns:
         ``(eigenvalues (count,) ascending in 1/unit^2, eigenvectors (N, count) M-orthonormal for
-        the mesh's own mass matrix, solver name)``.
+        the lumped mass matrix of the Laplacian the solver used, solver name)``.
     """
     faces = np.asarray(faces, dtype=np.int64)
     normalized, area = normalize_to_unit_area(np.asarray(vertices, dtype=np.float64), faces)
-    L, mass = mesh_laplacian(normalized, faces)
-    w, Y, solver = _eigenpairs_from_laplacian(normalized, faces, L, mass, count, method, {})
+    w, Y, _, solver = _eigenpairs(normalized, faces, count, method, {})
     return w / area, Y / math.sqrt(area), solver
 
 
-def _eigenpairs_from_laplacian(vertices, faces, L, mass, count, method, cache):
-    n = L.shape[0]
+def _eigenpairs(
+    vertices: np.ndarray, faces: np.ndarray, count: int, method: str, cache: dict
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    """(eigenvalues, eigenvectors, lumped mass, solver) of a connected unit-area mesh; ``cache``
+    keeps Laplacians and the multilevel hierarchy between calls with growing ``count``."""
+    n = len(vertices)
     if count > n - 1:
         raise MeshError(f"mesh has {n} vertices, so at most {n - 1} non-constant eigenpairs; {count} needed")
     use_multilevel = method == "multilevel" or (method == "auto" and n >= DIRECT_MAX_VERTICES)
     if use_multilevel and n > _COARSEST_VERTICES and not cache.get("multilevel_failed"):
         try:
             if "hierarchy" not in cache:
-                cache["hierarchy"] = _Multilevel(vertices, faces, L, mass)
-            w, Y = cache["hierarchy"].eigenpairs(count)
-            return w, Y, "multilevel"
-        except (_CoarseningFailed, _NotConverged, RuntimeError, np.linalg.LinAlgError):
-            # Unusual meshes (clusters that do not coarsen, many eigenpairs on a small mesh, no
-            # convergence): the direct solver always works.
+                operator = cotan_laplacian(vertices, faces) or _robust(vertices, faces, cache)
+                cache["hierarchy"] = _Level(vertices, faces, *operator)
+            hierarchy = cache["hierarchy"]
+            w, Y = hierarchy.eigenpairs(count)
+            return w[:count], Y[:, :count], hierarchy.mass, "multilevel"
+        except (_CoarseningFailed, _NotConverged, MeshError, RuntimeError, np.linalg.LinAlgError):
+            # Unusual meshes (clusters that do not coarsen, a coarse vertex with zero area, many
+            # eigenpairs on a small mesh, no convergence): the direct solver always works, and
+            # raises for a mesh that is itself bad.
             cache["multilevel_failed"] = True
+    L, mass = _robust(vertices, faces, cache)
     w, Y = _direct_eigenpairs(L, mass, count)
-    return w, Y, "dense" if n <= 100 or count + 1 >= n - 1 else "direct"
+    return w, Y, mass, "dense" if n <= 100 or count + 1 >= n - 1 else "direct"
+
+
+def _robust(vertices: np.ndarray, faces: np.ndarray, cache: dict) -> tuple[sp.csr_matrix, np.ndarray]:
+    if "robust" not in cache:
+        cache["robust"] = mesh_laplacian(vertices, faces)
+    return cache["robust"]
 
 
 def group_eigenvalues(eigenvalues: np.ndarray, tolerance: float = DEFAULT_TOLERANCE) -> list[tuple[int, ...]]:
@@ -716,13 +848,13 @@ def _fix_sign(y: np.ndarray, mass: np.ndarray, vertices: np.ndarray) -> np.ndarr
        coordinate along a fixed generic direction is made positive;
     3. otherwise the value at the vertex furthest along that direction is made positive.
     """
-    a = np.abs(y)
-    skew = float(np.sum(mass * y**3))
-    if abs(skew) > 1e-6 * float(np.sum(mass * a**3)):
+    weighted_square = mass * y * y
+    skew = float(weighted_square @ y)
+    if abs(skew) > 1e-6 * float(weighted_square @ np.abs(y)):
         return y if skew > 0 else -y
     along = vertices @ _GENERIC_DIRECTION
-    moment = float(np.sum(mass * y * along))
-    if abs(moment) > 1e-6 * float(np.sum(mass * a * np.abs(along))):
+    moment = float((mass * y) @ along)
+    if abs(moment) > 1e-6 * float((mass * np.abs(y)) @ np.abs(along)):
         return y if moment > 0 else -y
     value = y[int(np.argmax(along))]
     return y if value >= 0 else -y
@@ -819,9 +951,6 @@ def background_descriptor(descriptors: np.ndarray, grid_points: int = 1000) -> n
     """
     points = np.asarray(descriptors, dtype=np.float64)
     dim = points.shape[1]
-    # Symmetric parts repeat the same descriptor many times: median-split (balanced) k-d trees
-    # degrade badly with duplicates, sliding-midpoint ones do not.
-    full_tree = cKDTree(points, balanced_tree=False)
     cell = 1.0 / 64.0
     code = np.clip(np.floor(points / cell), 0, 64).astype(np.int64)
     if dim <= 9:  # 7 bits per axis fit in one int64 key; np.unique on rows is much slower
@@ -829,6 +958,8 @@ def background_descriptor(descriptors: np.ndarray, grid_points: int = 1000) -> n
         _, first = np.unique(code, return_index=True)
     else:
         _, first = np.unique(code, axis=0, return_index=True)
+    # Symmetric parts repeat the same descriptor many times: median-split (balanced) k-d trees
+    # degrade badly with duplicates, sliding-midpoint ones do not.
     coarse_tree = cKDTree(points[np.sort(first)], balanced_tree=False)
 
     if dim <= 12:
@@ -850,8 +981,10 @@ def background_descriptor(descriptors: np.ndarray, grid_points: int = 1000) -> n
     reach = cell
     best_point, best_distance = None, -1.0
     for x0, r0 in coarse[:2]:
-        near = points[full_tree.query_ball_point(x0, r0 + 2 * reach * math.sqrt(dim))]
-        x, fx = _compass_search(cKDTree(near), x0, cell, 1e-4, center=x0, reach=reach)
+        offset = points - x0
+        radius = r0 + 2 * reach * math.sqrt(dim)
+        near = points[np.einsum("ij,ij->i", offset, offset) <= radius * radius]
+        x, fx = _compass_search(cKDTree(near, balanced_tree=False), x0, cell, 1e-4, center=x0, reach=reach)
         if fx > best_distance:
             best_point, best_distance = x, fx
     return best_point.astype(np.float32)
@@ -859,8 +992,12 @@ def background_descriptor(descriptors: np.ndarray, grid_points: int = 1000) -> n
 
 def _components(n_vertices: int, faces: np.ndarray) -> tuple[int, np.ndarray]:
     """Connected components over face edges (labels (N,)); unreferenced vertices are their own."""
-    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
-    graph = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n_vertices, n_vertices))
+    return _connected_pieces(n_vertices, np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]]))
+
+
+def _connected_pieces(n_vertices: int, edges: np.ndarray) -> tuple[int, np.ndarray]:
+    """(number of pieces, labels (N,)) of the graph with undirected ``edges`` (E, 2)."""
+    graph = sp.csr_matrix((np.ones(len(edges), np.int8), (edges[:, 0], edges[:, 1])), shape=(n_vertices, n_vertices))
     return connected_components(graph, directed=False)
 
 
@@ -912,7 +1049,7 @@ def embed(
     _, label = _components(n_all, faces)
     referenced = np.zeros(n_all, dtype=bool)
     referenced[faces.ravel()] = True
-    piece_labels = np.unique(label[faces[:, 0]])
+    piece_labels = np.flatnonzero(np.bincount(label[faces[:, 0]]))
     if len(piece_labels) > 1:
         tri = vertices[faces]
         face_area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
@@ -934,10 +1071,13 @@ def embed(
     else:
         keep = referenced
     keep_index = np.flatnonzero(keep)
-    remap = np.full(n_all, -1, dtype=np.int64)
-    remap[keep_index] = np.arange(len(keep_index))
-    sub_faces = remap[faces]
-    sub_faces = sub_faces[np.all(sub_faces >= 0, axis=1)]
+    if len(keep_index) == n_all:
+        sub_faces = faces
+    else:
+        remap = np.full(n_all, -1, dtype=np.int64)
+        remap[keep_index] = np.arange(len(keep_index))
+        sub_faces = remap[faces]
+        sub_faces = sub_faces[sub_faces.min(axis=1) >= 0]
     sub_vertices, area = normalize_to_unit_area(vertices[keep_index], sub_faces)
     n = len(sub_vertices)
     if n < dim + 2:
@@ -946,13 +1086,12 @@ def embed(
             "(one more eigenpair than dimensions, after the constant one)"
         )
 
-    L, mass = mesh_laplacian(sub_vertices, sub_faces)
     cache: dict = {}
     # Symmetric: start with two spare eigenpairs (enough for a part with one pair among its first
     # groups) and double while the groups do not close.
     count = min(n - 1, dim if not symmetric else dim + 2)
     while True:
-        w, Y, solver = _eigenpairs_from_laplacian(sub_vertices, sub_faces, L, mass, count, method, cache)
+        w, Y, mass, solver = _eigenpairs(sub_vertices, sub_faces, count, method, cache)
         result = descriptor_functions(w, Y, mass, sub_vertices, dim, symmetric, tolerance, complete=count >= n - 1)
         if result is not None:
             break

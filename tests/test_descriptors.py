@@ -194,6 +194,46 @@ def test_multilevel_solver_matches_direct_and_is_order_independent(toolcap):
     assert np.abs(shuffled.vertex_descriptors - direct.vertex_descriptors[order]).max() < 0.02
 
 
+def test_cotan_laplacian_is_robust_laplacian_on_a_delaunay_mesh():
+    sphere = trimesh.creation.icosphere(subdivisions=3)  # near-equilateral: intrinsically Delaunay
+    vertices, faces = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    L, mass = D.cotan_laplacian(vertices, faces)
+    L_robust, mass_robust = D.mesh_laplacian(vertices, faces)
+    assert abs(L - L_robust).max() < 1e-4 * abs(L_robust).max()  # mollification only
+    assert np.allclose(mass, mass_robust, rtol=1e-4)
+    assert np.allclose(L @ np.ones(len(vertices)), 0.0, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "vertices, faces, problem",
+    [
+        ([[0, 0, 0], [1, 0, 0], [0.5, 0.02, 0]], [[0, 1, 2]], "angle of 175 degrees"),
+        ([[0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0, 1, 2]], "zero area"),
+        ([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]], [[0, 1, 2], [1, 0, 3], [0, 1, 4]], "fin"),
+    ],
+)
+def test_cotan_laplacian_refuses_meshes_it_is_not_reliable_on(vertices, faces, problem):
+    assert D.cotan_laplacian(np.asarray(vertices, float), np.asarray(faces)) is None, problem
+    equilateral = D.cotan_laplacian(np.eye(3), np.array([[0, 1, 2]]))
+    assert equilateral is not None and np.allclose(equilateral[0].diagonal(), 1 / np.sqrt(3))
+
+
+def test_multilevel_solver_on_a_poorly_shaped_mesh_refines_with_robust_laplacian(toolcap):
+    vertices, faces = trimesh.remesh.subdivide(toolcap.mesh.vertices, toolcap.mesh.faces)
+    # A needle: one vertex pulled almost onto the opposite edge of one of its faces.
+    a, b, c = faces[100]
+    vertices[a] = 0.99 * (vertices[b] + vertices[c]) / 2 + 0.01 * vertices[a]
+    normalized, _ = D.normalize_to_unit_area(vertices, faces)
+    assert D.cotan_laplacian(normalized, faces) is None
+    cache: dict = {}
+    _, _, mass, solver = D._eigenpairs(normalized, faces, 5, "multilevel", cache)
+    assert solver == "multilevel" and "robust" in cache and mass is cache["robust"][1]
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    direct, multilevel = embed(mesh, 3, method="direct"), embed(mesh, 3, method="multilevel")
+    assert multilevel.solver == "multilevel" and multilevel.groups == direct.groups
+    assert np.abs(multilevel.vertex_descriptors - direct.vertex_descriptors).max() < 0.02
+
+
 # ---------------------------------------------------------------- interpolation
 
 

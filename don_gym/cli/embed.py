@@ -66,8 +66,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--method",
         choices=("auto", "direct", "multilevel"),
         default="auto",
-        help="eigensolver: 'direct' shift-invert Lanczos, 'multilevel' coarse-mesh solve refined on the full "
-        "mesh, 'auto' (default) direct below 10000 vertices",
+        help="eigensolver: 'direct' robust-laplacian + shift-invert Lanczos on the whole mesh, 'multilevel' "
+        "coarse-mesh solve refined on the full mesh (5x+ faster on large meshes, descriptors within ~0.01), "
+        "'auto' (default) direct below 10000 vertices",
     )
     parser.add_argument("--out", metavar="FIELD.npz", default=None, help="write the descriptor field to this .npz")
     parser.add_argument(
