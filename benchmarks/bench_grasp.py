@@ -37,7 +37,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import record_section  # noqa: E402
 
 from don_gym.build import DatasetConfig, build_dataset  # noqa: E402
-from don_gym.checkpoints import read_checkpoint_metadata  # noqa: E402
 from don_gym.evaluation import TrackingConfig, evaluate_tracking, tracking_table, write_tracking_outputs  # noqa: E402
 from don_gym.grasp_benchmark import (  # noqa: E402
     GraspBenchmarkConfig,
@@ -49,7 +48,7 @@ from don_gym.grasp_benchmark import (  # noqa: E402
     training_image_size,
     write_grasp_outputs,
 )
-from don_gym.zoo import shipped_names, shipped_path  # noqa: E402
+from don_gym.zoo import read_don_metadata, shipped_names  # noqa: E402
 
 FIGURES = Path(__file__).resolve().parent / "figures"
 EVAL_SEED = 1000
@@ -61,7 +60,7 @@ def tracking(args: argparse.Namespace, work: Path) -> str:
     sizes = []
     for object_name in args.objects:
         networks = [n for n in shipped_names() if n.split("/", 1)[0] == object_name]
-        image_size = training_image_size({n: read_checkpoint_metadata(shipped_path(n)).image_size for n in networks})
+        image_size = training_image_size({n: read_don_metadata(n).image_size for n in networks})
         sizes.append(f"{object_name} {image_size[0]}x{image_size[1]}")
         config = DatasetConfig(
             object=object_name,

@@ -44,7 +44,7 @@ from _results import record_section  # noqa: E402
 
 from don_gym.agents import AxisGraspAgent, rl  # noqa: E402
 from don_gym.errors import DonGymError  # noqa: E402
-from don_gym.zoo import shipped_names  # noqa: E402
+from don_gym.zoo import read_don_metadata, shipped_names  # noqa: E402
 
 FIGURES = Path(__file__).resolve().parent / "figures"
 #: Held-out evaluation episodes are reset with EVAL_SEED + i; training envs draw from seed + i.
@@ -219,11 +219,8 @@ def keypoint_image_size(keypoint_model: str) -> tuple[int, int]:
     """(width, height) the keypoint network was trained at; 160x120 for the oracle (no network)."""
     if keypoint_model == "oracle":
         return ORACLE_IMAGE_SIZE
-    from don_gym.objects import load_object
-    from don_gym.wrappers import load_descriptor_source
-
-    metadata = getattr(load_descriptor_source(keypoint_model, load_object("toolcap")), "metadata", None)
-    return ORACLE_IMAGE_SIZE if metadata is None else tuple(metadata.image_size)
+    # The benchmark's envs show the toolcap: a network for another part is refused here, before training.
+    return tuple(read_don_metadata(keypoint_model, expect_object="toolcap").image_size)
 
 
 def _pixels(text: str) -> int:

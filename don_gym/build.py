@@ -314,6 +314,10 @@ def build_dataset(
                 for n in pool.imap_unordered(_worker_write, todo):
                     frames += n
                     bar.update(n)
+                # A clean shutdown: the with-block alone terminates the workers, which leaves the
+                # pool's semaphores to the resource tracker's "leaked semaphore" warning.
+                pool.close()
+                pool.join()
     finally:
         bar.close()
     return BuildReport(len(todo), skipped, frames, time.perf_counter() - start)

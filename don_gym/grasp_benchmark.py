@@ -357,6 +357,8 @@ def run_grasp_benchmark(config: GraspBenchmarkConfig, workers: int = 2, progress
                 for index, record in pool.imap_unordered(_worker_run, list(enumerate(tasks))):
                     records[index] = record
                     bar.update(1)
+                pool.close()  # clean shutdown: leaving the with-block terminates (leaked-semaphore warning)
+                pool.join()
     episodes = [r for r in records if r is not None]
     return GraspBenchmarkResult(config, episodes, time.perf_counter() - start, workers, method_info)
 

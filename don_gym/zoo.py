@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from don_gym.checkpoints import CheckpointMetadata, load_checkpoint
+from don_gym.checkpoints import CheckpointMetadata, check_metadata, load_checkpoint, read_checkpoint_metadata
 from don_gym.errors import CheckpointError
 from don_gym.model import DenseObjectNet
 
@@ -37,6 +37,29 @@ def is_checkpoint_reference(name_or_path: str | Path) -> bool:
     return Path(text).is_file() or (SHIPPED_DIR / f"{text}.safetensors").is_file()
 
 
+def checkpoint_path(name_or_path: str | Path) -> Path:
+    """The checkpoint file meant by a shipped short name, a checkpoint file or a training run
+    directory (its ``model.safetensors``); CheckpointError listing the shipped names otherwise."""
+    text = str(name_or_path)
+    if Path(text).is_dir() and (Path(text) / "model.safetensors").is_file():
+        return Path(text) / "model.safetensors"
+    return Path(text) if Path(text).is_file() else shipped_path(text)
+
+
+def read_don_metadata(
+    name_or_path: str | Path,
+    expect_object: str | None = None,
+    expect_descriptor_dim: int | None = None,
+    expect_method: str | None = None,
+) -> CheckpointMetadata:
+    """What :func:`load_don` would check and return as metadata, without loading the weights
+    (training image size, object, method, ...); CheckpointError naming what differs."""
+    path = checkpoint_path(name_or_path)
+    metadata = read_checkpoint_metadata(path)
+    check_metadata(metadata, str(path), expect_object, expect_descriptor_dim, expect_method)
+    return metadata
+
+
 def load_don(
     name_or_path: str | Path,
     expect_object: str | None = None,
@@ -49,12 +72,8 @@ def load_don(
 
     Returns ``(model in eval mode, metadata)``; raises CheckpointError naming what differs.
     """
-    text = str(name_or_path)
-    if Path(text).is_dir() and (Path(text) / "model.safetensors").is_file():
-        text = str(Path(text) / "model.safetensors")
-    path = Path(text) if Path(text).is_file() else shipped_path(text)
     return load_checkpoint(
-        path,
+        checkpoint_path(name_or_path),
         expect_object=expect_object,
         expect_descriptor_dim=expect_descriptor_dim,
         expect_method=expect_method,

@@ -12,7 +12,6 @@ import torch
 import don_gym  # noqa: F401 - registers the envs
 from don_gym.agents import AxisGraspAgent
 from don_gym.build import DatasetConfig, build_dataset
-from don_gym.checkpoints import read_checkpoint_metadata
 from don_gym.errors import DonGymError
 from don_gym.geometry import make_transform, transform_points
 from don_gym.model import DenseObjectNet
@@ -20,7 +19,7 @@ from don_gym.objects import load_object
 from don_gym.sim.task import OUTCOMES
 from don_gym.train import TrainConfig, train
 from don_gym.wrappers import OracleDescriptors, axis_end_targets, descriptor_field_for
-from don_gym.zoo import shipped_names, shipped_path
+from don_gym.zoo import read_don_metadata, shipped_names
 
 
 @pytest.fixture(autouse=True)
@@ -198,7 +197,7 @@ TOOLCAP_SHIPPED = [n for n in shipped_names() if n.startswith("toolcap/")]
 @pytest.fixture(scope="module")
 def env_shipped():
     """The env at the image size the shipped toolcap networks were trained at (they share one)."""
-    sizes = {read_checkpoint_metadata(shipped_path(n)).image_size for n in TOOLCAP_SHIPPED}
+    sizes = {read_don_metadata(n).image_size for n in TOOLCAP_SHIPPED}
     assert len(sizes) == 1, f"the shipped toolcap networks were trained at different image sizes: {sizes}"
     env = gym.make("DONToolcapPick-v0", image_size=sizes.pop())
     yield env

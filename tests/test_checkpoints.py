@@ -182,3 +182,19 @@ def test_foreign_or_future_safetensors(tmp_path, saved) -> None:
     save_file(tensors, str(no_json), metadata={"don_gym": "{not json"})
     with pytest.raises(CheckpointError, match="not valid JSON"):
         read_checkpoint_metadata(no_json)
+
+
+def test_zoo_reads_metadata_of_a_file_a_run_directory_or_a_shipped_name_without_weights(saved, tmp_path) -> None:
+    from don_gym.zoo import load_don, read_don_metadata, shipped_names
+
+    path, _ = saved
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "model.safetensors").write_bytes(path.read_bytes())
+    assert read_don_metadata(path) == read_don_metadata(run) == load_don(run)[1] == read_checkpoint_metadata(path)
+    with pytest.raises(CheckpointError, match="object_name is 'toolcap', expected 'shaft'"):
+        read_don_metadata(path, expect_object="shaft")
+    with pytest.raises(CheckpointError, match="no shipped network named 'toolcap/nonsense'; available"):
+        read_don_metadata("toolcap/nonsense")
+    for name in shipped_names():
+        assert read_don_metadata(name).object_name == name.split("/")[0]
