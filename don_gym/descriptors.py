@@ -46,9 +46,10 @@ default above :data:`DIRECT_MAX_VERTICES` vertices) solves on a coarser mesh and
    The fine-level operator is the cotangent Laplacian (:func:`cotan_laplacian`) when the mesh meets
    the maximum-angle condition (no angle above 170 degrees, no edge in three faces): that is the
    intrinsic-Delaunay Laplacian on meshes that are already intrinsically Delaunay, and on the others
-   its smallest eigenvectors agree with robust_laplacian's to ~3e-4 (benchmark meshes). Otherwise
-   robust_laplacian's Laplacian of the whole mesh is built, as for the direct solver, and costs
-   about as much as the rest of the multilevel solve.
+   a consistent discretisation of the same operator (in the benchmark, descriptors refined with
+   either differ from the direct solver's by the same 0.004-0.006). Otherwise robust_laplacian's
+   Laplacian of the whole mesh is built, as for the direct solver, and costs about as much as the
+   rest of the multilevel solve.
 
 Measured (``benchmarks/bench_descriptors.py``, RESULTS.md, 2-core CPU): descriptors within 0.01 of
 the direct solver's and over 5x faster from 38k vertices up.
@@ -390,8 +391,9 @@ def cotan_laplacian(
     (robust_laplacian) returns, up to its mollification (~1e-5 relative). On other meshes that meet
     the maximum-angle condition, under which linear finite elements, hence this Laplacian, converge
     (Babuska & Aziz 1976), both are consistent discretisations of the Laplace-Beltrami operator
-    and their smallest eigenvectors agree closely; it takes a tenth of robust_laplacian's time.
-    Needles, caps, folds and non-manifold edges are what robust_laplacian is made for.
+    and their smallest eigenvectors agree closely; it is built without robust_laplacian's intrinsic
+    edge flips, so much faster. Needles, caps, folds and non-manifold edges are what
+    robust_laplacian is made for.
     """
     n = len(vertices)
     corners = np.ascontiguousarray(vertices.T)[:, faces]  # (3 coordinates, F, 3 corners)
