@@ -41,9 +41,19 @@ def checkpoint_path(name_or_path: str | Path) -> Path:
     """The checkpoint file meant by a shipped short name, a checkpoint file or a training run
     directory (its ``model.safetensors``); CheckpointError listing the shipped names otherwise."""
     text = str(name_or_path)
-    if Path(text).is_dir() and (Path(text) / "model.safetensors").is_file():
-        return Path(text) / "model.safetensors"
-    return Path(text) if Path(text).is_file() else shipped_path(text)
+    path = Path(text)
+    if path.is_dir() and (path / "model.safetensors").is_file():
+        return path / "model.safetensors"
+    if path.is_file():
+        return path
+    if (SHIPPED_DIR / f"{text}.safetensors").is_file():
+        return shipped_path(text)
+    # Neither: say what was wrong with what the user evidently meant.
+    if path.is_dir():
+        raise CheckpointError(f"{text!r} is a directory without model.safetensors (not a training run directory)")
+    if path.suffix or path.is_absolute():
+        raise CheckpointError(f"checkpoint {text!r}: no such file")
+    return shipped_path(text)
 
 
 def read_don_metadata(

@@ -196,5 +196,9 @@ def test_zoo_reads_metadata_of_a_file_a_run_directory_or_a_shipped_name_without_
         read_don_metadata(path, expect_object="shaft")
     with pytest.raises(CheckpointError, match="no shipped network named 'toolcap/nonsense'; available"):
         read_don_metadata("toolcap/nonsense")
+    with pytest.raises(CheckpointError, match="no such file"):
+        read_don_metadata(tmp_path / "missing.safetensors")
+    with pytest.raises(CheckpointError, match="directory without model.safetensors"):
+        load_don(tmp_path)
     for name in shipped_names():
         assert read_don_metadata(name).object_name == name.split("/")[0]
