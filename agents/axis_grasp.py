@@ -1,6 +1,6 @@
 """The scripted two-descriptor axis-grasp agent (Kupcsik et al. 2021, "Grasp Pose Prediction").
 
-The agent tracks two keypoints on the part's axis ends (:func:`don_gym.wrappers.axis_end_targets`:
+The agent tracks two keypoints on the part's axis ends (:func:`don_gym.descriptor_sources.axis_end_targets`:
 the outer-surface rings at 20 % and 80 % of the axial length) and turns them into the
 ``control="grasp"`` action ``[x, y, z, yaw]``:
 
@@ -15,7 +15,7 @@ the outer-surface rings at 20 % and 80 % of the axial length) and turns them int
    radii differ). The camera centre is the *reported* camera pose's, as a real robot would know it.
 3. Grasp point: the linear combination of ``q1`` and ``q2`` at the axial position of the env's
    grasp point (:func:`don_gym.sim.task.grasp_point_object`, the midpoint of the axis ends moved
-   onto a flat stretch of the profile), which the agent knows from the object model. Its ``z`` is
+   onto a flat stretch of the profile, clear of its steps), which the agent knows from the object model. Its ``z`` is
    the axis height, which is what the grasp action expects (the TCP goes to the part's centre line).
 4. Yaw: ``atan2`` of ``(q2 - q1)`` in the world xy-plane, the direction of the part's +axis.
 
@@ -33,26 +33,24 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from don_gym.descriptor_sources import (
+    DEFAULT_AXIS_FRACTIONS,
+    AxisEndTargets,
+    DescriptorSource,
+    ReferenceFrame,
+    axis_end_targets,
+    default_reference_descriptors,
+    descriptor_field_for,
+    env_object_model,
+    load_descriptor_source,
+)
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics
 from don_gym.keypoints import DEFAULT_CONFIDENCE_SIGMA, DEFAULT_SOFT_TEMPERATURE, locate_keypoints
 from don_gym.model import DenseObjectNet
 from don_gym.objects import ObjectModel
-from don_gym.sim.task import grasp_point_object
-from don_gym.wrappers.descriptors import (
-    DescriptorSource,
-    ReferenceFrame,
-    descriptor_field_for,
-    env_object_model,
-    load_descriptor_source,
-)
-from don_gym.wrappers.keypoints import (
-    DEFAULT_AXIS_FRACTIONS,
-    AxisEndTargets,
-    KeypointObservation,
-    axis_end_targets,
-    default_reference_descriptors,
-)
+from don_gym.sim.task import grasp_axial_position_m
+from don_gym.wrappers.keypoints import KeypointObservation
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -78,7 +76,7 @@ class AxisGraspAgent:
             at a fixed seed and pose (reset it after). Given, it is used for every model, which also
             takes out a supervised network's systematic bias (its own output at the rings, not the
             descriptors it was trained towards).
-        fractions: axial fractions of the two keypoints (:func:`~don_gym.wrappers.axis_end_targets`).
+        fractions: axial fractions of the two keypoints (:func:`~don_gym.descriptor_sources.axis_end_targets`).
         descriptor_dim: required descriptor size (None: the model's).
         window_m, temperature, confidence_sigma: keypoint matching (see
             :func:`don_gym.keypoints.locate_keypoints`); window None = the rings' diameter.
@@ -105,18 +103,6 @@ class AxisGraspAgent:
         self._setup(object_model, source, reference, targets, window_m, temperature, confidence_sigma)
         #: ``env`` wrapped with this agent's keypoints (:meth:`wrap`).
         self.env: KeypointObservation | None = self.wrap(env)
-
-    @classmethod
-    def for_env(
-        cls,
-        env: gym.Env,
-        model: str | Path | DenseObjectNet | DescriptorSource = "oracle",
-        reference_frame: ReferenceFrame | None = None,
-        fractions: tuple[float, float] = DEFAULT_AXIS_FRACTIONS,
-        descriptor_dim: int | None = None,
-    ) -> AxisGraspAgent:
-        """The same as ``AxisGraspAgent(env, model, ...)``."""
-        return cls(env, model, reference_frame, fractions, descriptor_dim)
 
     @classmethod
     def from_parts(
@@ -159,9 +145,8 @@ class AxisGraspAgent:
         self.window_m = self.targets.window_m if window_m is None else float(window_m)
         self.temperature = float(temperature)
         self.confidence_sigma = float(confidence_sigma)
-        axis = np.asarray(object_model.plus_axis, dtype=np.float64)
         #: Axial position (m from the centre of mass along +axis) the grasp aims at.
-        self.grasp_axial_m = float((grasp_point_object(object_model) - object_model.center_of_mass) @ axis)
+        self.grasp_axial_m = grasp_axial_position_m(object_model)
 
     @property
     def method(self) -> str:

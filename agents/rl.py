@@ -1,39 +1,35 @@
-"""Reinforcement-learning baselines with stable-baselines3 (the ``rl`` extra).
+"""Reinforcement-learning baselines with stable-baselines3 (the ``rl`` extra), seeing the part only
+through its axis-end keypoints, never through its true pose.
 
-Two baselines, both seeing the part only through DON keypoints
-(:class:`don_gym.wrappers.KeypointObservation`), never through its true pose:
+- PPO on ``control="grasp"`` (:func:`make_ppo_env`): one grasp per episode, flat keypoint features
+  and residual actions in the keypoints' own axis frame (:mod:`don_gym.wrappers.rl`).
+- SAC on ``control="ee"`` (:func:`make_sac_env`): 25 Hz Cartesian control from the robot state and
+  the keypoints of each wrist-camera image; with ``goal=`` goal-conditioned, trained with HER.
+- PPO on ``control="grasp"`` from descriptor images through a CNN (:func:`make_image_env`).
 
-- **PPO on** ``control="grasp"`` (:func:`make_ppo_env`): a one-step episode per grasp. The
-  policy sees the keypoints of the observation image as a flat vector (:class:`KeypointFeatures`)
-  and outputs a normalised action in [-1, 1]^5 (:class:`KeypointGraspAction`): an offset of the
-  grasp point from the confidence-weighted keypoint centroid (x, y within +-5 cm, z within
-  +-3 cm) and the yaw as a (cos, sin) pair, so that yaw is a smooth function of the keypoints
-  without a jump at +-pi. ``action_frame="world"`` instead spans the env's whole action box.
-- **SAC on** ``control="ee"`` (:func:`make_sac_env`): 25 Hz Cartesian control. The policy sees the
-  robot state (TCP pose, gripper width) and the keypoints found in the current wrist-camera
-  image, also relative to the TCP. The keypoints move with the camera and vanish when the part
-  leaves the view; the policy gets their confidences so it can tell.
+Keypoints (``keypoints=``): ``"don"`` a DON or the oracle on rendered images
+(:class:`~don_gym.wrappers.KeypointObservation`); ``"simulated"`` a model of the DON, no rendering
+(:class:`~don_gym.wrappers.SimulatedKeypoints` with the network's measured noise); ``"true"`` exact
+keypoints always in view. :func:`train` runs SB3 with a tqdm bar and, given ``run_dir``, writes the
+learning curve (CSV, PNG), configuration and seeds (JSON) and periodic saves it can resume from;
+:func:`evaluate` measures a policy on seeded episodes. ``n_envs > 1`` with ``vectorize="batched"``
+steps the sub-envs together and runs the DON once per step on all their images
+(:class:`~don_gym.wrappers.VectorKeypointObservation`). stable-baselines3 is imported only inside the
+functions that need it (ImportError naming ``pip install "don-gym[rl]"`` without it).
 
-Flat observations: positions relative to a reference, in units that make the inputs of the
-networks of order one: absolute positions (relative to the workspace centre) and keypoints
-relative to the TCP in :data:`POSITION_UNIT_M` (5 cm), keypoints relative to their centroid in
-:data:`KEYPOINT_OFFSET_UNIT_M` (1 cm: the two keypoints of the toolcap are 2.4 cm apart, and
-the yaw the policy must read off them is in that difference).
-
-Train with :func:`train` (seeded, tqdm progress bar, learning curve of the training episodes
-recorded by :class:`LearningCurve`) and measure with :func:`evaluate` on seeded episodes
-(``reset(seed=seed + i)`` for episode ``i``: any two policies evaluated with the same seed face
-the same part poses and calibration errors). ``benchmarks/bench_rl.py`` runs both baselines.
-
-stable-baselines3 is imported only inside the functions that need it; without it they raise
-ImportError naming ``pip install "don-gym[rl]"``. The env wrappers work without it.
+Longer budgets on a GPU machine: the recipe in ``benchmarks/bench_rl.py``'s docstring (SAC+HER with 8
+batched envs, the DON on the GPU).
 """
 
 from __future__ import annotations
 
+import csv
 import functools
+import json
+import platform
 import time
-from collections.abc import Callable, Sequence
+import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,26 +39,31 @@ import numpy as np
 from gymnasium import spaces
 
 from don_gym.errors import DonGymError
-from don_gym.sim.task import TABLE_TOP_Z_M, WORKSPACE_M
+from don_gym.io import atomic_path, write_text_atomic
+from don_gym.sim.task import OUTCOMES
+from don_gym.wrappers import KeypointObservation
+from don_gym.wrappers.goals import GOALS, KeypointGoal
+from don_gym.wrappers.images import DescriptorImage
+from don_gym.wrappers.rl import KeypointFeatures, KeypointGraspAction
+from don_gym.wrappers.simulated_keypoints import SimulatedKeypoints
 
 #: The pip command that installs stable-baselines3 for these baselines.
 RL_INSTALL_HINT = 'pip install "don-gym[rl]"'
-ALGORITHMS = ("ppo", "sac")
-ACTION_FRAMES = ("keypoints", "world")
-#: Length unit (m) of positions in the flat observations, except keypoints relative to their centroid.
-POSITION_UNIT_M = 0.05
-#: Length unit (m) of keypoints relative to their centroid in the flat observations.
-KEYPOINT_OFFSET_UNIT_M = 0.01
-#: Workspace centre (m, world): the reference of absolute positions in the flat observations.
-WORKSPACE_CENTRE_M = np.array(
-    [(WORKSPACE_M[0] + WORKSPACE_M[1]) / 2, (WORKSPACE_M[2] + WORKSPACE_M[3]) / 2, TABLE_TOP_Z_M]
-)
-#: Keypoint action frame: largest offset (m) of the grasp point from the keypoint centroid in x, y
-#: and in z. The toolcap is 34 mm across and 40 mm long, and a grasp succeeds within about 1 cm.
-GRASP_OFFSET_XY_M = 0.05
-GRASP_OFFSET_Z_M = 0.03
-#: Keypoints with a confidence at or below this count as not found.
-MIN_CONFIDENCE = 0.0
+ALGORITHMS = ("ppo", "sac", "ppo-images")
+#: Where the keypoints come from (see the module docstring).
+KEYPOINT_SOURCES = ("don", "simulated", "true")
+#: How :func:`train` steps several envs.
+VECTORIZE = ("dummy", "subproc", "batched", "batched-async")
+#: Files a run directory holds (see :func:`train`).
+RUN_FILES = {
+    "config": "config.json",
+    "curve_csv": "curve.csv",
+    "curve_png": "curve.png",
+    "model": "model.zip",
+    "last_model": "model_last.zip",
+    "last_buffer": "replay_buffer_last.pkl",
+    "last_curve": "curve_last.csv",
+}
 
 
 def require_sb3() -> Any:
@@ -76,143 +77,30 @@ def require_sb3() -> Any:
     return stable_baselines3
 
 
-# ------------------------------------------------------------------------------ observations
-def keypoint_centroid(points_m: np.ndarray, confidence: np.ndarray) -> np.ndarray | None:
-    """Confidence-weighted mean (3,) of the found keypoints (K, 3), or None when none was found."""
-    found = _found(points_m, confidence)
-    if not found.any():
-        return None
-    weights = confidence[found].astype(np.float64)
-    return (points_m[found].astype(np.float64) * weights[:, None]).sum(axis=0) / weights.sum()
-
-
-def _found(points_m: np.ndarray, confidence: np.ndarray) -> np.ndarray:
-    return np.isfinite(points_m).all(axis=1) & np.isfinite(confidence) & (confidence > MIN_CONFIDENCE)
-
-
-class KeypointFeatures(gym.ObservationWrapper):
-    """Flatten a keypoint observation into the float32 vector an MLP policy reads.
-
-    Input: a Dict observation with ``keypoint_points`` (K, 3) world m and ``keypoint_confidence``
-    (K,) (from :class:`don_gym.wrappers.KeypointObservation`) and, for ``relative_to="tcp"`` or
-    ``robot_state=True``, ``ee_pose`` (7,) and ``gripper_width`` (1,).
-
-    Output, in this order (lengths in units of :data:`POSITION_UNIT_M` unless said otherwise):
-
-    - keypoint centroid relative to the workspace centre (3,),
-    - each keypoint relative to the centroid (``relative_to="centroid"``, in units of
-      :data:`KEYPOINT_OFFSET_UNIT_M`) or to the TCP (``"tcp"``) (K*3,),
-    - confidences (K,),
-    - with ``robot_state``: TCP position relative to the workspace centre (3,), TCP quaternion
-      (4,), gripper width in units of 4 cm (1,).
-
-    Keypoints not found (confidence 0 or non-finite) read as zeros with confidence 0; the
-    centroid of a frame without any keypoint reads as zeros.
-    """
-
-    def __init__(self, env: gym.Env, relative_to: str = "centroid", robot_state: bool = False):
-        super().__init__(env)
-        if relative_to not in ("centroid", "tcp"):
-            raise DonGymError(f"relative_to={relative_to!r}: expected 'centroid' or 'tcp'")
-        space = env.observation_space
-        needed = ["keypoint_points", "keypoint_confidence"]
-        if relative_to == "tcp" or robot_state:
-            needed += ["ee_pose", "gripper_width"]
-        missing = [key for key in needed if not isinstance(space, spaces.Dict) or key not in space.spaces]
-        if missing:
-            raise DonGymError(
-                f"KeypointFeatures needs observation keys {missing}: wrap the env in "
-                "don_gym.wrappers.KeypointObservation first"
-            )
-        self.relative_to = relative_to
-        self.robot_state = robot_state
-        self.num_keypoints = int(space["keypoint_points"].shape[0])
-        size = 3 + 4 * self.num_keypoints + (8 if robot_state else 0)
-        self.observation_space = spaces.Box(-np.inf, np.inf, shape=(size,), dtype=np.float32)
-
-    def observation(self, observation: dict[str, np.ndarray]) -> np.ndarray:
-        points = np.asarray(observation["keypoint_points"], dtype=np.float64).reshape(-1, 3)
-        confidence = np.asarray(observation["keypoint_confidence"], dtype=np.float64).reshape(-1)
-        found = _found(points, confidence)
-        centroid = keypoint_centroid(points, confidence)
-        if self.relative_to == "tcp":
-            reference, unit = np.asarray(observation["ee_pose"], dtype=np.float64)[:3], POSITION_UNIT_M
-        else:
-            reference = WORKSPACE_CENTRE_M if centroid is None else centroid
-            unit = KEYPOINT_OFFSET_UNIT_M
-        relative = np.where(found[:, None], points - reference, 0.0) / unit
-        parts = [
-            np.zeros(3) if centroid is None else (centroid - WORKSPACE_CENTRE_M) / POSITION_UNIT_M,
-            relative.reshape(-1),
-            np.where(found, confidence, 0.0),
-        ]
-        if self.robot_state:
-            ee_pose = np.asarray(observation["ee_pose"], dtype=np.float64)
-            parts += [
-                (ee_pose[:3] - WORKSPACE_CENTRE_M) / POSITION_UNIT_M,
-                ee_pose[3:7],
-                np.asarray(observation["gripper_width"], dtype=np.float64).reshape(1) / 0.04,
-            ]
-        return np.concatenate(parts).astype(np.float32)
-
-
-# -------------------------------------------------------------------------------- actions
-class KeypointGraspAction(gym.Wrapper):
-    """Grasp-mode actions in [-1, 1]^5 for a policy: (x, y, z, cos yaw, sin yaw).
-
-    ``frame="keypoints"``: the grasp point is the keypoint centroid of the reset observation plus
-    (x, y) * :data:`GRASP_OFFSET_XY_M` and z * :data:`GRASP_OFFSET_Z_M`; a frame without keypoints
-    falls back to the workspace centre at table height. ``frame="world"``: (x, y, z) span the
-    env's action box linearly. In both, the yaw of the believed +axis is ``atan2(sin, cos)``
-    (a zero vector reads as yaw 0). Must wrap an env whose observations still hold
-    ``keypoint_points`` and ``keypoint_confidence`` (put it below :class:`KeypointFeatures`).
-    """
-
-    def __init__(self, env: gym.Env, frame: str = "keypoints"):
-        super().__init__(env)
-        if frame not in ACTION_FRAMES:
-            raise DonGymError(f"action_frame={frame!r} is unknown; expected one of {list(ACTION_FRAMES)}")
-        if getattr(env.unwrapped, "control", None) != "grasp":
-            raise DonGymError("KeypointGraspAction needs an env with control='grasp'")
-        self.frame = frame
-        self.action_space = spaces.Box(-1.0, 1.0, shape=(5,), dtype=np.float32)
-        self._centroid = WORKSPACE_CENTRE_M.copy()
-
-    def reset(self, **kwargs: Any):
-        observation, info = self.env.reset(**kwargs)
-        centroid = keypoint_centroid(
-            np.asarray(observation["keypoint_points"]), np.asarray(observation["keypoint_confidence"])
-        )
-        self._centroid = WORKSPACE_CENTRE_M.copy() if centroid is None else centroid
-        return observation, info
-
-    def grasp_action(self, action: np.ndarray) -> np.ndarray:
-        """The env action [x, y, z, yaw] (world m, rad) of a normalised action."""
-        action = np.clip(np.asarray(action, dtype=np.float64).reshape(-1), -1.0, 1.0)
-        if action.shape != (5,):
-            raise DonGymError(f"action has shape {action.shape}, expected (5,)")
-        if self.frame == "keypoints":
-            offset = action[:3] * np.array([GRASP_OFFSET_XY_M, GRASP_OFFSET_XY_M, GRASP_OFFSET_Z_M])
-            point = self._centroid + offset
-        else:
-            low, high = self.env.action_space.low[:3], self.env.action_space.high[:3]
-            point = low + (action[:3] + 1.0) * 0.5 * (high - low)
-        yaw = float(np.arctan2(action[4], action[3]))
-        return np.array([*point, yaw], dtype=np.float32)
-
-    def step(self, action: np.ndarray):
-        return self.env.step(self.grasp_action(action))
-
-
 # ------------------------------------------------------------------------------- the envs
-def _keypoint_env(
-    object: str | Path, keypoint_model: str | Path, keypoint_kwargs: dict[str, Any] | None, **env_kwargs: Any
-) -> gym.Env:
-    import don_gym  # noqa: F401 - registers the env ids
-    from don_gym.wrappers import KeypointObservation
+def _base_env(object: str | Path, images: bool, image_size: tuple[int, int] | None, **env_kwargs: Any) -> gym.Env:
+    return gym.make("DONPick-v0", object=object, image_size=image_size if images else None, **env_kwargs)
 
-    env = gym.make("DONPick-v0", object=object, **env_kwargs)
-    return KeypointObservation(env, model=keypoint_model, keep_images=False, **(keypoint_kwargs or {}))
+
+def _with_keypoints(
+    env: gym.Env,
+    keypoints: str,
+    keypoint_model: str | Path,
+    noise: Any,
+    keypoint_kwargs: dict[str, Any] | None,
+) -> gym.Env:
+    if keypoints == "don":
+        return KeypointObservation(env, model=keypoint_model, keep_images=False, **(keypoint_kwargs or {}))
+    if keypoints == "true":
+        return SimulatedKeypoints(env, noise=None, field_of_view=False, keep_images=False)
+    if noise is None and str(keypoint_model) != "oracle":
+        noise = keypoint_model  # the network's default noise model
+    return SimulatedKeypoints(env, noise=noise, keep_images=False)
+
+
+def _check_keypoints(keypoints: str) -> None:
+    if keypoints not in KEYPOINT_SOURCES:
+        raise DonGymError(f"keypoints={keypoints!r} is unknown; expected one of {list(KEYPOINT_SOURCES)}")
 
 
 def make_ppo_env(
@@ -221,23 +109,32 @@ def make_ppo_env(
     image_size: tuple[int, int] = (160, 120),
     sensor: str = "d435",
     reward_type: str = "dense",
-    action_frame: str = "keypoints",
+    action_frame: str = "axis",
+    keypoints: str = "don",
+    noise: Any = None,
     keypoint_kwargs: dict[str, Any] | None = None,
 ) -> gym.Env:
-    """The PPO baseline's env: ``control="grasp"`` with keypoints, flat observations and
-    normalised actions (see the module docstring).
+    """The PPO baseline's env: ``control="grasp"`` with keypoints, flat observations
+    (:class:`~don_gym.wrappers.KeypointFeatures`) and normalised actions in a frame set by the keypoints
+    (:class:`~don_gym.wrappers.KeypointGraspAction`; ``"axis"``: residuals about the keypoints' axis,
+    ``"keypoints"``: about their centroid with a world yaw, ``"world"``: the whole action box).
 
     ``keypoint_model``: "oracle" (keypoints from descriptors rendered at the true pose: a check of
-    the pipeline, not a perception result), a shipped DON name such as
-    "toolcap/supervised-edge", or a checkpoint path. ``reward_type="dense"`` gives failed grasps a
-    graded penalty (the success rate is measured either way by ``info["is_success"]``).
+    the pipeline, not a perception result), a shipped DON name such as "toolcap/supervised-edge",
+    or a checkpoint path; ``keypoints``/``noise``: see the module docstring. ``reward_type="dense"``
+    gives failed grasps a graded penalty (the success rate is measured either way by ``info["is_success"]``).
     """
-    env = _keypoint_env(
-        object, keypoint_model, keypoint_kwargs, control="grasp", image_size=image_size, sensor=sensor,
-        reward_type=reward_type,
-    )  # fmt: skip
+    _check_keypoints(keypoints)
+    env = _base_env(object, keypoints == "don", image_size, control="grasp", sensor=sensor, reward_type=reward_type)
+    env = _with_keypoints(env, keypoints, keypoint_model, noise, keypoint_kwargs)
     env = KeypointGraspAction(env, frame=action_frame)
     return KeypointFeatures(env, relative_to="centroid", robot_state=False)
+
+
+def _sac_head(env: gym.Env, goal: str | None) -> gym.Env:
+    if goal is None:
+        return KeypointFeatures(env, relative_to="tcp", robot_state=True)
+    return KeypointGoal(env, goal=goal)
 
 
 def make_sac_env(
@@ -247,22 +144,55 @@ def make_sac_env(
     sensor: str = "d435",
     reward_type: str = "dense",
     max_steps: int = 100,
+    keypoints: str = "don",
+    noise: Any = None,
+    goal: str | None = None,
     keypoint_kwargs: dict[str, Any] | None = None,
 ) -> gym.Env:
-    """The SAC baseline's env: ``control="ee"``, keypoints from the wrist camera at every step
-    (relative to the TCP) plus the robot state, as one flat vector (see the module docstring)."""
-    env = _keypoint_env(
-        object, keypoint_model, keypoint_kwargs, control="ee", image_size=image_size, sensor=sensor,
-        reward_type=reward_type, max_steps=max_steps,
+    """The SAC baseline's env: ``control="ee"``, keypoints of every wrist-camera frame (relative to the
+    TCP) plus the robot state as one flat vector; the keypoints move with the camera and vanish when
+    the part leaves the view, their confidences let the policy tell. ``goal`` ("place" or the "lift"
+    sub-task): the goal-conditioned dict of :class:`~don_gym.wrappers.KeypointGoal` for HER, with its
+    sparse goal reward instead of ``reward_type``'s."""
+    _check_keypoints(keypoints)
+    if goal is not None and goal not in GOALS:
+        raise DonGymError(f"goal={goal!r} is unknown; expected None or one of {list(GOALS)}")
+    env = _base_env(
+        object, keypoints == "don", image_size, control="ee", sensor=sensor, reward_type=reward_type,
+        max_steps=max_steps,
     )  # fmt: skip
-    return KeypointFeatures(env, relative_to="tcp", robot_state=True)
+    env = _with_keypoints(env, keypoints, keypoint_model, noise, keypoint_kwargs)
+    return _sac_head(env, goal)
 
 
-ENV_MAKERS: dict[str, Callable[..., gym.Env]] = {"ppo": make_ppo_env, "sac": make_sac_env}
+def make_image_env(
+    object: str | Path = "toolcap",  # noqa: A002 - the env's own kwarg name
+    keypoint_model: str | Path = "oracle",
+    image_size: tuple[int, int] = (160, 120),
+    cnn_size: tuple[int, int] = (80, 60),
+    sensor: str = "d435",
+    reward_type: str = "dense",
+) -> gym.Env:
+    """The descriptor-image baseline's env: ``control="grasp"``; the observation is the descriptor image
+    of ``keypoint_model`` (any model :class:`~don_gym.wrappers.DescriptorObservation` takes) as uint8,
+    resized to ``cnn_size`` (:class:`~don_gym.wrappers.DescriptorImage`), for SB3's CNN; the action
+    spans the env's action box in [-1, 1]^4 (x, y, z, yaw): the policy must find the part in the image."""
+    from don_gym.wrappers import DescriptorObservation
+
+    env = _base_env(object, True, image_size, control="grasp", sensor=sensor, reward_type=reward_type)
+    env = DescriptorImage(DescriptorObservation(env, model=keypoint_model), size=cnn_size, keep=())
+    ones = np.ones(env.action_space.shape, dtype=np.float32)
+    return gym.wrappers.RescaleAction(env, -ones, ones)
+
+
+ENV_MAKERS: dict[str, Callable[..., gym.Env]] = {"ppo": make_ppo_env, "sac": make_sac_env, "ppo-images": make_image_env}
 
 #: Defaults sized for a short CPU budget. PPO on grasp: every step is a whole episode (a one-step
-#: bandit), so small rollouts keep updates frequent; gamma does not matter. SAC on ee: small nets
-#: so one gradient step per env step stays cheaper than the rendering of that step.
+#: bandit), so small rollouts keep updates frequent; gamma does not matter; a small initial action
+#: noise, as the axis frame's action 0 already grasps. SAC on ee: small nets so one gradient step
+#: per env step stays cheaper than the rendering of that step. SAC with HER (``goal=``): the usual
+#: goal-conditioned settings (future strategy, 4 relabelled goals per transition, soft target
+#: updates of 0.05, gamma 0.95).
 DEFAULT_ALGO_KWARGS: dict[str, dict[str, Any]] = {
     "ppo": {
         "n_steps": 32,
@@ -271,7 +201,7 @@ DEFAULT_ALGO_KWARGS: dict[str, dict[str, Any]] = {
         "learning_rate": 3e-4,
         "gamma": 0.99,
         "ent_coef": 0.0,
-        "policy_kwargs": {"net_arch": [64, 64], "log_std_init": -0.5},
+        "policy_kwargs": {"net_arch": [64, 64], "log_std_init": -1.0},
     },
     "sac": {
         "learning_starts": 500,
@@ -283,7 +213,181 @@ DEFAULT_ALGO_KWARGS: dict[str, dict[str, Any]] = {
         "gradient_steps": 1,
         "policy_kwargs": {"net_arch": [128, 128]},
     },
+    "sac-her": {
+        "learning_starts": 1000,
+        "buffer_size": 300_000,
+        "batch_size": 256,
+        "learning_rate": 1e-3,
+        "gamma": 0.95,
+        "tau": 0.05,
+        "train_freq": 1,
+        "gradient_steps": 1,
+        "policy_kwargs": {"net_arch": [256, 256]},
+        "replay_buffer_kwargs": {"n_sampled_goal": 4, "goal_selection_strategy": "future"},
+    },
+    "ppo-images": {
+        "n_steps": 32,
+        "batch_size": 16,
+        "n_epochs": 4,
+        "learning_rate": 3e-4,
+        "gamma": 0.99,
+        "ent_coef": 0.0,
+        "policy_kwargs": {"net_arch": [64, 64], "log_std_init": -0.5},
+    },
 }
+
+
+# ---------------------------------------------------------------- batched vector envs for SB3
+class _SubEnvProxy(gym.Env):
+    """One sub-env of a vector env as seen by per-env wrappers: it returns what the vector env
+    produced for it (set by :class:`BatchedVecEnv`) and carries the attributes wrappers look up."""
+
+    def __init__(self, observation_space: spaces.Space, action_space: spaces.Space, attributes: dict[str, Any]):
+        self.observation_space = observation_space
+        self.action_space = action_space
+        for name, value in attributes.items():
+            setattr(self, name, value)
+        self.pending_reset: tuple[Any, dict] | None = None
+        self.pending_step: tuple[Any, float, bool, bool, dict] | None = None
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        out, self.pending_reset = self.pending_reset, None
+        if out is None:
+            raise RuntimeError("sub-env reset outside BatchedVecEnv")
+        return out
+
+    def step(self, action: Any):
+        out, self.pending_step = self.pending_step, None
+        if out is None:
+            raise RuntimeError("sub-env step outside BatchedVecEnv")
+        return out
+
+
+#: Sub-env attributes the per-env wrappers on top of a batched vector env may look up.
+PROXY_ATTRIBUTES = ("model", "control", "intrinsics", "max_steps", "render_mode", "image_size")
+
+
+def make_batched_vec_env(
+    vector_env: gym.vector.VectorEnv, head: Callable[[gym.Env], gym.Env], monitor: bool = True
+) -> Any:
+    """An SB3 VecEnv over a ``gymnasium.vector`` env made with ``autoreset_mode=SAME_STEP`` (e.g. a
+    :class:`~don_gym.wrappers.VectorKeypointObservation`): each sub-env gets ``head`` (observation and
+    reward wrappers only, such as :class:`~don_gym.wrappers.KeypointFeatures` or
+    :class:`~don_gym.wrappers.KeypointGoal`; actions pass through unchanged), wrapped in SB3's Monitor.
+    ``env_method`` reaches the heads (HER's ``compute_reward``)."""
+    from gymnasium.vector import AutoresetMode
+    from gymnasium.vector.utils import iterate
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from don_gym.wrappers.vector import unbatch_info
+
+    if vector_env.metadata.get("autoreset_mode") != AutoresetMode.SAME_STEP:
+        raise DonGymError("make_batched_vec_env needs a vector env made with autoreset_mode=AutoresetMode.SAME_STEP")
+    attributes = {}
+    for name in PROXY_ATTRIBUTES:
+        try:
+            attributes[name] = vector_env.unwrapped.get_attr(name)[0]
+        except AttributeError:
+            pass
+    proxies = [
+        _SubEnvProxy(vector_env.single_observation_space, vector_env.single_action_space, attributes)
+        for _ in range(vector_env.num_envs)
+    ]
+
+    def wrapped(proxy: _SubEnvProxy) -> Callable[[], gym.Env]:
+        env = head(proxy)
+        if monitor:
+            env = Monitor(env, info_keywords=("is_success",))
+        return lambda: env
+
+    class BatchedVecEnv(DummyVecEnv):
+        def reset(self):
+            seeds = None if all(s is None for s in self._seeds) else [s for s in self._seeds]
+            options = self._options[0] if self._options and self._options[0] else None
+            observations, infos = vector_env.reset(seed=seeds, options=options)
+            for i, obs in enumerate(iterate(vector_env.observation_space, observations)):
+                proxies[i].pending_reset = (obs, unbatch_info(infos, i))
+            return super().reset()
+
+        def step_async(self, actions: np.ndarray) -> None:
+            observations, rewards, terminations, truncations, infos = vector_env.step(np.asarray(actions))
+            final = np.asarray(infos.get("_final_obs", np.zeros(self.num_envs, bool)))
+            for i, obs in enumerate(iterate(vector_env.observation_space, observations)):
+                info = unbatch_info(infos, i)
+                for key in ("final_obs", "final_info"):
+                    info.pop(key, None)
+                if final[i]:
+                    final_info = unbatch_info(infos["final_info"], i)
+                    proxies[i].pending_step = (
+                        infos["final_obs"][i], float(rewards[i]), bool(terminations[i]), bool(truncations[i]),
+                        final_info,
+                    )  # fmt: skip
+                    proxies[i].pending_reset = (obs, info)
+                else:
+                    proxies[i].pending_step = (
+                        obs, float(rewards[i]), bool(terminations[i]), bool(truncations[i]), info
+                    )  # fmt: skip
+            super().step_async(actions)
+
+        def close(self) -> None:
+            super().close()
+            vector_env.close()
+
+    return BatchedVecEnv([wrapped(p) for p in proxies])
+
+
+def make_batched_sac_vec_env(
+    n_envs: int,
+    env_kwargs: dict[str, Any] | None = None,
+    asynchronous: bool = False,
+    device: str | None = None,
+    monitor: bool = True,
+) -> Any:
+    """The SAC env (:func:`make_sac_env` arguments in ``env_kwargs``, ``keypoints="don"``) as an SB3
+    VecEnv of ``n_envs`` sub-envs whose images go through the DON together, on ``device``."""
+    from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv
+
+    from don_gym.wrappers.vector import VectorKeypointObservation
+
+    _check_n_envs(n_envs)
+    kwargs = dict(env_kwargs or {})
+    if kwargs.get("keypoints", "don") != "don":
+        raise DonGymError(
+            f"batched envs run a DON; keypoints={kwargs['keypoints']!r} needs none (use vectorize='dummy')"
+        )
+    goal = kwargs.get("goal")
+    if goal is not None and goal not in GOALS:
+        raise DonGymError(f"goal={goal!r} is unknown; expected None or one of {list(GOALS)}")
+    base = functools.partial(
+        _base_env,
+        kwargs.get("object", "toolcap"),
+        True,
+        kwargs.get("image_size", (160, 120)),
+        control="ee",
+        sensor=kwargs.get("sensor", "d435"),
+        reward_type=kwargs.get("reward_type", "dense"),
+        max_steps=kwargs.get("max_steps", 100),
+    )
+    vector_class = AsyncVectorEnv if asynchronous else SyncVectorEnv
+    vector_env = vector_class([base] * int(n_envs), autoreset_mode=AutoresetMode.SAME_STEP)
+    try:
+        keypoint_env = VectorKeypointObservation(
+            vector_env,
+            kwargs.get("keypoint_model", "oracle"),
+            keep_images=False,
+            device=device,
+            **(kwargs.get("keypoint_kwargs") or {}),
+        )
+    except Exception:
+        vector_env.close()
+        raise
+    return make_batched_vec_env(keypoint_env, functools.partial(_sac_head, goal=goal), monitor=monitor)
+
+
+def _check_n_envs(n_envs: Any) -> None:
+    if isinstance(n_envs, bool) or not isinstance(n_envs, (int, np.integer)) or int(n_envs) < 1:
+        raise DonGymError(f"n_envs={n_envs!r}: expected a positive number of envs")
 
 
 # ------------------------------------------------------------------------- learning curve
@@ -312,15 +416,49 @@ class LearningCurve:
         returns = np.convolve(np.asarray(self.returns, dtype=np.float64), kernel)[:n] / counts
         return np.asarray(self.env_steps), success, returns
 
+    def default_window(self) -> int:
+        """A rolling window of about a fifth of the episodes, 3..50."""
+        return max(3, min(50, len(self.successes) // 5))
 
-def _curve_callback(curve: LearningCurve, total_timesteps: int, description: str, progress: bool) -> Any:
-    """SB3 callback: records finished episodes into ``curve`` and drives a tqdm bar of env steps."""
+    def write_csv(self, path: str | Path) -> Path:
+        """``episode, env_steps, return, success`` per episode, atomically."""
+        path = Path(path)
+        with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(["episode", "env_steps", "return", "success"])
+            for i, (steps, ret, ok) in enumerate(zip(self.env_steps, self.returns, self.successes, strict=True)):
+                writer.writerow([i, steps, f"{ret:.6g}", int(ok)])
+        return path
+
+    @classmethod
+    def read_csv(cls, path: str | Path) -> LearningCurve:
+        curve = cls()
+        with open(path, newline="") as f:
+            for row in csv.DictReader(f):
+                curve.add(int(row["env_steps"]), float(row["return"]), bool(int(row["success"])))
+        return curve
+
+
+def _curve_callback(
+    curve: LearningCurve,
+    total_timesteps: int,
+    description: str,
+    progress: bool,
+    run_dir: Path | None,
+    save_every: int | None,
+) -> Any:
+    """SB3 callback: records finished episodes into ``curve``, drives a tqdm bar of env steps and,
+    with a run directory, saves the model (and replay buffer) and the curve every ``save_every`` steps."""
     from stable_baselines3.common.callbacks import BaseCallback
     from tqdm import tqdm
 
     class _Callback(BaseCallback):
         def _on_training_start(self) -> None:
-            self.bar = tqdm(total=total_timesteps, desc=description, unit="step", disable=not progress)
+            self.bar = tqdm(
+                total=total_timesteps, initial=self.model.num_timesteps, desc=description, unit="step",
+                disable=not progress,
+            )  # fmt: skip
+            self.last_save = self.model.num_timesteps
 
         def _on_step(self) -> bool:
             self.bar.update(self.training_env.num_envs)
@@ -330,12 +468,27 @@ def _curve_callback(curve: LearningCurve, total_timesteps: int, description: str
                     curve.add(self.num_timesteps, episode["r"], info.get("is_success", False))
             if curve.successes:
                 self.bar.set_postfix(episodes=len(curve.successes), success=f"{np.mean(curve.successes[-50:]):.2f}")
+            if run_dir is not None and save_every and self.num_timesteps - self.last_save >= save_every:
+                self.last_save = self.num_timesteps
+                save_checkpoint(self.model, curve, run_dir)
             return True
 
         def _on_training_end(self) -> None:
             self.bar.close()
 
     return _Callback()
+
+
+def save_checkpoint(model: Any, curve: LearningCurve, run_dir: str | Path) -> None:
+    """The resumable state of a run: ``model_last.zip``, the replay buffer of an off-policy algorithm
+    and ``curve_last.csv``, each written atomically."""
+    run_dir = Path(run_dir)
+    with atomic_path(run_dir / RUN_FILES["last_model"]) as tmp:
+        model.save(tmp)
+    if getattr(model, "replay_buffer", None) is not None:
+        with atomic_path(run_dir / RUN_FILES["last_buffer"]) as tmp:
+            model.save_replay_buffer(tmp)
+    curve.write_csv(run_dir / RUN_FILES["last_curve"])
 
 
 def _monitored(maker: Callable[..., gym.Env], env_kwargs: dict[str, Any]) -> gym.Env:
@@ -345,10 +498,83 @@ def _monitored(maker: Callable[..., gym.Env], env_kwargs: dict[str, Any]) -> gym
 
 
 @dataclass
-class TrainResult:
+class RLTrainResult:
+    """A trained baseline: the SB3 model, the :class:`LearningCurve` of its training episodes, the
+    wall time in seconds and its run directory, if any (not :class:`don_gym.train.TrainResult`, a
+    DON training run)."""
+
     model: Any
     curve: LearningCurve
     wall_s: float
+    run_dir: Path | None = None
+
+
+def _policy_inputs_extractor() -> type:
+    """SB3 features extractor for goal dicts that leaves ``achieved_goal`` (the true keypoints) out."""
+    from stable_baselines3.common.torch_layers import CombinedExtractor
+
+    class PolicyInputs(CombinedExtractor):
+        def __init__(self, observation_space: spaces.Dict, **kwargs: Any) -> None:
+            kept = spaces.Dict({k: v for k, v in observation_space.spaces.items() if k != "achieved_goal"})
+            super().__init__(kept, **kwargs)
+
+    return PolicyInputs
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, (str, int, float, bool)) or value is None:
+        return value
+    if isinstance(value, (np.integer, np.floating)):
+        return value.item()
+    return str(value)
+
+
+def _algorithm_setup(algorithm: str, env_kwargs: dict[str, Any], algo_kwargs: dict[str, Any] | None):
+    """(SB3 class name, policy name, keyword arguments) of an algorithm and env."""
+    her = algorithm == "sac" and env_kwargs.get("goal") is not None
+    key = "sac-her" if her else algorithm
+    kwargs = {**DEFAULT_ALGO_KWARGS[key], **dict(algo_kwargs or {})}
+    kwargs["policy_kwargs"] = dict(kwargs.get("policy_kwargs") or {})
+    if her:
+        kwargs["replay_buffer_kwargs"] = dict(kwargs.get("replay_buffer_kwargs") or {})
+        return "SAC", "MultiInputPolicy", kwargs
+    if algorithm == "ppo-images":
+        return "PPO", "MultiInputPolicy", kwargs
+    return ("PPO" if algorithm == "ppo" else "SAC"), "MlpPolicy", kwargs
+
+
+def make_vec_env(
+    algorithm: str,
+    n_envs: int,
+    seed: int,
+    env_kwargs: dict[str, Any],
+    vectorize: str | None = None,
+    don_device: str | None = None,
+) -> Any:
+    """The SB3 VecEnv :func:`train` trains on (``vectorize``: see :data:`VECTORIZE`; None: one env in
+    this process, or a subprocess per env; ``don_device``: where batched envs run the DON)."""
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    _check_n_envs(n_envs)
+    vectorize = vectorize or ("dummy" if int(n_envs) == 1 else "subproc")
+    if vectorize not in VECTORIZE:
+        raise DonGymError(f"vectorize={vectorize!r} is unknown; expected one of {list(VECTORIZE)}")
+    if vectorize.startswith("batched"):
+        if algorithm != "sac":
+            raise DonGymError(f"vectorize={vectorize!r} serves the SAC env (control='ee'), not {algorithm!r}")
+        vec_env = make_batched_sac_vec_env(
+            int(n_envs), env_kwargs, asynchronous=vectorize == "batched-async", device=don_device
+        )
+    else:
+        env_fn = functools.partial(_monitored, ENV_MAKERS[algorithm], dict(env_kwargs))
+        vec_class = SubprocVecEnv if vectorize == "subproc" else DummyVecEnv
+        vec_env = vec_class([env_fn] * int(n_envs))
+    vec_env.seed(int(seed))
+    return vec_env
 
 
 def train(
@@ -359,35 +585,110 @@ def train(
     env_kwargs: dict[str, Any] | None = None,
     algo_kwargs: dict[str, Any] | None = None,
     progress: bool = True,
-) -> TrainResult:
-    """Train the PPO (grasp) or SAC (ee) baseline for ``total_timesteps`` env steps.
+    run_dir: str | Path | None = None,
+    save_every: int | None = None,
+    resume: bool = False,
+    vectorize: str | None = None,
+    device: str = "cpu",
+    don_device: str | None = None,
+) -> RLTrainResult:
+    """Train a baseline of :data:`ALGORITHMS` for ``total_timesteps`` env steps.
 
-    ``env_kwargs`` go to :func:`make_ppo_env` / :func:`make_sac_env`; ``algo_kwargs`` override
-    :data:`DEFAULT_ALGO_KWARGS`. Env ``i`` is seeded ``seed + i`` and the algorithm ``seed``: a
-    run with the same arguments and one torch thread repeats exactly. ``n_envs > 1`` steps the
-    envs in subprocesses (worth it only with a free core per env: the physics dominates).
+    ``env_kwargs`` go to :func:`make_ppo_env` / :func:`make_sac_env` / :func:`make_image_env` (SAC
+    with ``goal`` trains with HER, its policy not seeing ``achieved_goal``); ``algo_kwargs`` override
+    :data:`DEFAULT_ALGO_KWARGS`. Env ``i`` is reset first with seed ``seed + i`` and the algorithm
+    seeded with ``seed``: a run with the same arguments and one torch thread repeats exactly.
+    ``vectorize``, ``don_device``: see :func:`make_vec_env`. ``device``: where the policy trains.
+
+    ``run_dir``: writes ``config.json`` (arguments, seeds, versions), ``curve.csv`` and ``curve.png``
+    (the training episodes), ``model.zip`` at the end, and every ``save_every`` env steps (default
+    about a tenth of the run) ``model_last.zip``, the replay buffer and ``curve_last.csv``.
+    ``resume=True`` continues from those to ``total_timesteps``; a resumed run goes on from the
+    saved model and buffer but does not repeat the uninterrupted run bit for bit (the envs restart).
     """
     if algorithm not in ALGORITHMS:
         raise DonGymError(f"algorithm={algorithm!r} is unknown; expected one of {list(ALGORITHMS)}")
-    if int(total_timesteps) < 1 or int(n_envs) < 1:
-        raise DonGymError(f"total_timesteps={total_timesteps!r} and n_envs={n_envs!r} must be positive")
+    _check_n_envs(n_envs)
+    if int(total_timesteps) < 1:
+        raise DonGymError(f"total_timesteps={total_timesteps!r}: expected a positive number of env steps")
+    if resume and run_dir is None:
+        raise DonGymError("resume=True needs the run_dir of the run to resume")
     sb3 = require_sb3()
-    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+    env_kwargs = dict(env_kwargs or {})
+    class_name, policy, kwargs = _algorithm_setup(algorithm, env_kwargs, algo_kwargs)
+    algo_class = getattr(sb3, class_name)
+    if policy == "MultiInputPolicy" and class_name == "SAC":
+        from stable_baselines3 import HerReplayBuffer
 
-    maker = ENV_MAKERS[algorithm]
-    env_fn = functools.partial(_monitored, maker, dict(env_kwargs or {}))
-    vec_env = SubprocVecEnv([env_fn] * n_envs) if n_envs > 1 else DummyVecEnv([env_fn])
-    kwargs = DEFAULT_ALGO_KWARGS[algorithm] | dict(algo_kwargs or {})
-    algo_class = sb3.PPO if algorithm == "ppo" else sb3.SAC
+        kwargs["replay_buffer_class"] = HerReplayBuffer
+        kwargs["policy_kwargs"]["features_extractor_class"] = _policy_inputs_extractor()
+    run_path = Path(run_dir) if run_dir is not None else None
+    config = {
+        "algorithm": algorithm,
+        "total_timesteps": int(total_timesteps),
+        "n_envs": int(n_envs),
+        "vectorize": vectorize,
+        "env_kwargs": _jsonable(env_kwargs),
+        "algo_kwargs": _jsonable({k: v for k, v in kwargs.items() if k != "replay_buffer_class"}),
+        "seeds": {"algorithm": int(seed), "envs_first_reset": [int(seed) + i for i in range(int(n_envs))]},
+        "versions": {"python": platform.python_version(), "stable_baselines3": sb3.__version__},
+    }
     curve = LearningCurve()
+    if resume:
+        last = run_path / RUN_FILES["last_model"]
+        if not last.is_file():
+            raise DonGymError(f"resume: {str(run_path)!r} holds no {RUN_FILES['last_model']} to resume from")
+        saved = json.loads((run_path / RUN_FILES["config"]).read_text())
+        differs = [k for k in ("algorithm", "n_envs", "env_kwargs") if saved.get(k) != config[k]]
+        if differs:
+            raise DonGymError(f"resume: {str(run_path)!r} was a run with other {differs}; start a new run_dir")
+        curve = LearningCurve.read_csv(run_path / RUN_FILES["last_curve"])
+    elif run_path is not None:
+        run_path.mkdir(parents=True, exist_ok=True)
+    if run_path is not None:
+        write_text_atomic(run_path / RUN_FILES["config"], json.dumps(_jsonable(config), indent=1) + "\n")
+    save_every = save_every or max(1, int(total_timesteps) // 10)
+    vec_env = make_vec_env(algorithm, int(n_envs), seed, env_kwargs, vectorize, don_device)
     start = time.perf_counter()
     try:
-        model = algo_class("MlpPolicy", vec_env, seed=seed, device="cpu", verbose=0, **kwargs)
-        callback = _curve_callback(curve, int(total_timesteps), f"{algorithm.upper()} train", progress)
-        model.learn(total_timesteps=int(total_timesteps), callback=callback)
+        if resume:
+            custom = {"policy_kwargs": kwargs["policy_kwargs"]}
+            last = run_path / RUN_FILES["last_model"]
+            model = algo_class.load(last, env=vec_env, device=device, custom_objects=custom)
+            buffer = run_path / RUN_FILES["last_buffer"]
+            if getattr(model, "replay_buffer", None) is not None and buffer.is_file():
+                with warnings.catch_warnings():
+                    # HER cuts the episode that was running at the save: the envs restart, as it assumes.
+                    warnings.filterwarnings("ignore", message="The last trajectory in the replay buffer")
+                    model.load_replay_buffer(buffer)
+        else:
+            model = algo_class(policy, vec_env, seed=seed, device=device, verbose=0, **kwargs)
+        remaining = int(total_timesteps) - int(model.num_timesteps)
+        if remaining > 0:
+            description = f"{algorithm.upper()} train"
+            callback = _curve_callback(curve, int(total_timesteps), description, progress, run_path, save_every)
+            model.learn(total_timesteps=remaining, callback=callback, reset_num_timesteps=not resume)
     finally:
         vec_env.close()
-    return TrainResult(model=model, curve=curve, wall_s=time.perf_counter() - start)
+    wall_s = time.perf_counter() - start
+    if run_path is not None:
+        write_run_outputs(run_path, model, curve, algorithm, config | {"wall_s": wall_s, "finished": True})
+    return RLTrainResult(model=model, curve=curve, wall_s=wall_s, run_dir=run_path)
+
+
+def write_run_outputs(
+    run_dir: Path, model: Any, curve: LearningCurve, title: str, config: dict[str, Any] | None = None
+) -> None:
+    """The final files of a run: ``model.zip``, ``curve.csv``, ``curve.png`` (and ``config.json``)."""
+    from don_gym.plotting import plot_learning_curve
+
+    with atomic_path(run_dir / RUN_FILES["model"]) as tmp:
+        model.save(tmp)
+    curve.write_csv(run_dir / RUN_FILES["curve_csv"])
+    window = curve.default_window()
+    plot_learning_curve([("training episodes", curve.rolling(window))], run_dir / RUN_FILES["curve_png"], window, title)
+    if config is not None:
+        write_text_atomic(run_dir / RUN_FILES["config"], json.dumps(_jsonable(config), indent=1) + "\n")
 
 
 # ------------------------------------------------------------------------------ evaluation
@@ -410,8 +711,7 @@ class EvaluationResult:
         return float(np.mean(self.returns)) if self.returns else 0.0
 
     def outcome_counts(self) -> dict[str, int]:
-        names = ("fail", "grasp_only", "grasp_and_place")
-        return {name: sum(outcome == name for outcome in self.outcomes) for name in names}
+        return {name: sum(outcome == name for outcome in self.outcomes) for name in OUTCOMES}
 
 
 def evaluate(
@@ -423,7 +723,8 @@ def evaluate(
     progress: bool = True,
 ) -> EvaluationResult:
     """Run ``policy(observation) -> action`` for ``n_episodes`` episodes, episode ``i`` reset with
-    ``seed + i``. Success is ``info["is_success"]`` at the episode's last step."""
+    ``seed + i`` (two policies evaluated with the same seed face the same part poses and calibration
+    errors). Success is ``info["is_success"]`` at the episode's last step."""
     from tqdm import tqdm
 
     if int(n_episodes) < 1:
@@ -456,42 +757,3 @@ def random_policy(action_space: spaces.Space, seed: int) -> Callable[[Any], np.n
     space = spaces.Box(action_space.low, action_space.high, dtype=action_space.dtype)
     space.seed(int(seed))
     return lambda observation: space.sample()
-
-
-def plot_learning_curve(
-    curves: Sequence[tuple[str, LearningCurve]],
-    path: str | Path,
-    window: int,
-    title: str,
-    reference_lines: Sequence[tuple[str, float, float]] = (),
-) -> None:
-    """Success rate and mean return (rolling over ``window`` training episodes) against env steps.
-
-    ``reference_lines``: (label, success rate, mean return) of baselines drawn as dashed lines."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from don_gym.io import atomic_path
-
-    figure, (ax_success, ax_return) = plt.subplots(1, 2, figsize=(10, 4.4))
-    for label, curve in curves:
-        steps, success, returns = curve.rolling(window)
-        ax_success.plot(steps, success, label=label)
-        ax_return.plot(steps, returns, label=label)
-    for k, (label, success_rate, mean_return) in enumerate(reference_lines):
-        colour = f"C{k + len(curves)}"
-        ax_success.axhline(success_rate, linestyle="--", color=colour, label=label)
-        ax_return.axhline(mean_return, linestyle="--", color=colour, label=label)
-    ax_success.set(xlabel="env steps", ylabel=f"success rate (last {window} episodes)", ylim=(-0.02, 1.02))
-    ax_return.set(xlabel="env steps", ylabel=f"episode return (mean of last {window})")
-    handles, labels = ax_success.get_legend_handles_labels()
-    rows = (len(labels) + 2) // 3
-    # One legend under both plots, so that no line is hidden behind it.
-    figure.legend(handles, labels, loc="lower center", ncol=3, fontsize=8, frameon=False)
-    figure.suptitle(title)
-    figure.tight_layout(rect=(0.0, 0.06 * rows, 1.0, 1.0))
-    with atomic_path(path) as tmp:
-        figure.savefig(tmp, dpi=110)
-    plt.close(figure)

@@ -1,8 +1,8 @@
 """Shared helper for benchmark scripts: record a result section in benchmarks/RESULTS.md.
 
 Each benchmark owns one section, delimited by HTML comments, which it replaces on every run.
-The section header records the exact command, the machine and the date, so every figure
-in RESULTS.md can be traced to the run that produced it.
+The section header records the exact command, the machine, the date and the commit, so every
+figure in RESULTS.md can be traced to the run and the code that produced it.
 """
 
 from __future__ import annotations
@@ -12,10 +12,14 @@ import os
 import platform
 import re
 import shlex
+import subprocess
 import sys
 from pathlib import Path
 
 RESULTS_PATH = Path(__file__).resolve().parent / "RESULTS.md"
+REPO_ROOT = RESULTS_PATH.parent.parent
+#: Paths the benchmarks themselves write: changes there do not make a measurement's code uncommitted.
+BENCHMARK_OUTPUTS = ("benchmarks/RESULTS.md", "benchmarks/figures/")
 
 
 def machine_description() -> str:
@@ -50,12 +54,37 @@ def command_line() -> str:
     return " ".join(["python", shlex.quote(str(script)), *map(shlex.quote, sys.argv[1:])])
 
 
+def _git(*args: str) -> str:
+    return subprocess.run(["git", *args], cwd=REPO_ROOT, capture_output=True, text=True, check=True, timeout=30).stdout
+
+
+def commit_description() -> str:
+    """``<short hash>``, plus `` + uncommitted changes`` when tracked files other than the benchmarks'
+    own outputs differ from it; ``unknown`` without git or outside a repository."""
+    try:
+        commit = _git("rev-parse", "--short", "HEAD").strip()
+        status = _git("status", "--porcelain", "-z", "--untracked-files=no")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    # -z entries: "XY path"; a rename or copy (X or Y is R or C) is followed by its source path.
+    entries = iter(status.split("\0"))
+    paths = []
+    for entry in entries:
+        if len(entry) > 3:
+            paths.append(entry[3:])
+            if "R" in entry[:2] or "C" in entry[:2]:
+                paths.append(next(entries, ""))
+    changed = [p for p in paths if p and not (p == BENCHMARK_OUTPUTS[0] or p.startswith(BENCHMARK_OUTPUTS[1]))]
+    return f"{commit} + uncommitted changes" if changed else (commit or "unknown")
+
+
 def record_section(name: str, title: str, body_markdown: str, path: Path = RESULTS_PATH) -> str:
     """Replace (or append) the section ``name`` of RESULTS.md; returns the section text."""
     date = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     section = (
         f"<!-- begin {name} -->\n## {title}\n\n"
-        f"- Command: `{command_line()}`\n- Machine: {machine_description()}\n- Date: {date}\n\n"
+        f"- Command: `{command_line()}`\n- Machine: {machine_description()}\n- Date: {date}\n"
+        f"- Commit: {commit_description()}\n\n"
         f"{body_markdown.strip()}\n<!-- end {name} -->\n"
     )
     text = (

@@ -1,15 +1,9 @@
 """Dataset-building speed: whole builds, and target rendering next to RGB rendering.
 
-Measures, in one run:
-
-1. Frames per second of a whole ``build-dataset`` (record, sensor model, targets, TSDF
-   fusion, PNG writes) with 1 worker (the baseline) and with 2 workers; target: at least
-   15 frames/s with 2 workers at 320x240 on 2 cores.
-2. Per frame, the time to render the supervised descriptor target (ray casting + edge
-   blending) next to the time PyBullet takes to render the RGB-D image of the same frame;
-   target: at most 10% of it.
-
-Records a section of benchmarks/RESULTS.md. ``--quick`` runs a smaller build.
+Frames/s of whole builds with 1 worker (the baseline) and 2 (target: >= 15 frames/s at 320x240 on
+2 cores); descriptor-target rendering time per frame against PyBullet's RGB-D render (target: <= 10 %);
+the 3D error of self-supervised matches per depth source. Records the "dataset" section of
+benchmarks/RESULTS.md (not with --no-record). ``--quick`` runs a smaller build.
 """
 
 from __future__ import annotations
@@ -35,6 +29,7 @@ from don_gym.sim.recorder import SceneRecorder  # noqa: E402
 
 
 def time_builds(config: DatasetConfig, worker_counts: list[int]) -> dict[int, float]:
+    """Frames/s of a whole build (record, sensor model, targets, TSDF fusion, PNG writes) per worker count."""
     rates = {}
     for workers in worker_counts:
         with tempfile.TemporaryDirectory(prefix="don_gym_bench_") as tmp:
@@ -76,8 +71,8 @@ def correspondence_errors(config: DatasetConfig, pairs: int, seed: int) -> dict[
     so the error is what the training signal gets wrong.
     """
     from don_gym.correspondences import sample_correspondences
+    from don_gym.dataset import DEPTH_SOURCES
     from don_gym.geometry import backproject_depth, transform_points
-    from don_gym.torch_data import DEPTH_SOURCES
 
     errors: dict[str, list[np.ndarray]] = {name: [] for name in DEPTH_SOURCES}
     with tempfile.TemporaryDirectory(prefix="don_gym_bench_") as tmp:

@@ -1,18 +1,8 @@
 """Simulation speed of the pick-and-place env against panda-gym, and with the wrist RGB-D camera.
 
-(a) ``control="ee"`` without images (``image_size=None``) against panda-gym's
-    ``PandaPickAndPlace-v3`` (the baseline; ``pip install panda-gym``, benchmark only) in the
-    same process, alternating rounds. Both: seeded uniform random actions, reset whenever an
-    episode ends (ours truncates after 100 steps, panda-gym after 50), 25 Hz control. Ours
-    simulates 10 steps of 4 ms with up to 150 solver iterations, a V-HACD/slab steel part and
-    null-space IK; panda-gym 20 steps of 2 ms with PyBullet's defaults. Target: >= 1.0x.
-(b) ``control="ee"`` with the wrist RGB-D camera at 160x120, TinyRenderer and EGL side by side,
-    ideal depth and the D435 sensor model. Target: >= 40 steps/s on 2 cores. Also 640x480 (D435
-    model only), where the renderers' costs differ most.
-(c) ``control="grasp"``: wall time of one scripted grasp-and-place episode (oracle action).
-
-Steps/s are wall-clock, median over rounds; the machine may be shared, so the table also gives
-steps per CPU-second of this process and how many cores other processes kept busy meanwhile.
+(a) ``control="ee"`` without images against panda-gym's ``PandaPickAndPlace-v3`` (target: >= 1.0x);
+(b) with the wrist camera, TinyRenderer and EGL (target: >= 40 steps/s at 160x120 on 2 cores);
+(c) wall time of one scripted grasp-and-place episode.
 
     python benchmarks/bench_env.py            # full run, records the "env" section of RESULTS.md
     python benchmarks/bench_env.py --quick    # short smoke run, records nothing
@@ -97,7 +87,11 @@ def main(argv: list[str] | None = None) -> int:
     camera_steps = args.camera_steps or (30 if args.quick else 150)
     load_before = os.getloadavg()[0]
 
-    # (a) no images vs panda-gym, alternating rounds so both see the same machine load.
+    # (a) no images vs panda-gym (the baseline; `pip install panda-gym`, benchmark only), alternating rounds
+    # so both see the same machine load. Both: seeded uniform random actions, reset whenever an episode ends
+    # (ours truncates after 100 steps, panda-gym after 50), 25 Hz control. Ours simulates 10 steps of 4 ms with
+    # up to 150 solver iterations, a V-HACD/slab steel part and null-space IK; panda-gym 20 steps of 2 ms with
+    # PyBullet's defaults.
     ours = gym.make("DONToolcapPick-v0", control="ee", image_size=None, sensor="ideal")
     baseline, baseline_name = make_panda_gym()
     ours_rounds, base_rounds = [], []

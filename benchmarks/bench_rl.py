@@ -1,33 +1,38 @@
-"""Short-budget RL baselines (stable-baselines3): PPO on ``control="grasp"``, SAC on ``control="ee"``.
+"""RL baselines (stable-baselines3) on the toolcap, seeing the part only through its two axis-end keypoints.
 
-Both policies see the toolcap only through DON keypoints (the two axis-end keypoints of
-:class:`don_gym.wrappers.KeypointObservation`), never its true pose; see ``don_gym.agents.rl``.
+Parts (``--only``, repeatable; all by default):
 
-- PPO: one grasp-and-place per env step (a one-step episode), keypoint-centred normalised
-  actions, dense reward for training; ``--ppo-steps`` episodes.
-- SAC: 25 Hz Cartesian control from the robot state and the keypoints of the current wrist
-  image, dense reward, ``--sac-max-steps`` steps per episode; ``--sac-steps`` env steps.
+- ``throughput``: env steps/s of ``control="ee"`` with DON keypoints for 1, 4 and 8 envs, the DON run per
+  env (today's wrappers) and once per step on all envs' images (``VectorKeypointObservation``), same run.
+- ``ppo``: PPO on ``control="grasp"`` with residual actions in the keypoints' axis frame, from DON keypoints,
+  and from a model of the DON (``SimulatedKeypoints``, no rendering) evaluated with the real DON (transfer).
+  Baselines on the same held-out episodes: random, the scripted ``AxisGraspAgent``, the true-pose grasp.
+- ``images``: PPO on ``control="grasp"`` from the DON's descriptor images (uint8, SB3's CNN), world actions.
+- ``sac``: SAC with HER on ``control="ee"`` (goal ``--sac-goal``: the ``lift`` sub-task by default, the full
+  ``place`` task being beyond this budget), learning curves from simulated keypoints, DON keypoints and the
+  true keypoints side by side; the simulated-keypoint policy is also evaluated with the DON (transfer).
 
-Each is then evaluated with its deterministic policy on the same seeded held-out episodes
-(``reset(seed=EVAL_SEED + i)``) as its baselines, run here too: for PPO a uniform random policy
-in the same keypoint-centred action frame, a uniform random grasp in the env's whole action box,
-the scripted ``AxisGraspAgent`` on the same keypoint model and images, and
-the true-pose oracle grasp (upper bound); for SAC a uniform random policy. The success rate is
-``info["is_success"]`` (grasp_and_place) at the end of each episode, with a 95 % Wilson interval.
+Every policy is evaluated on the same held-out seeds (``reset(seed=EVAL_SEED + i)``) with 95 % Wilson
+intervals. Every training run writes its learning curve (CSV, PNG), configuration and seeds (JSON) and
+periodic saves into ``--out`` (``runs/rl`` by default, a temporary directory with ``--quick``);
+``--resume`` continues interrupted runs there. Figures go to ``benchmarks/figures/``, results to the "rl"
+section of ``benchmarks/RESULTS.md`` (only for a full run of all parts).
 
-Learning curves (rolling success rate and return of the training episodes against env steps)
-go to ``benchmarks/figures/rl_ppo_grasp.png`` and ``rl_sac_ee.png``; results to the "rl" section
-of ``benchmarks/RESULTS.md`` (not with ``--quick``). One torch thread (see CONTRIBUTING).
+    python benchmarks/bench_rl.py                      # full CPU run, all parts (~1.5-2 h on 2 cores)
+    python benchmarks/bench_rl.py --only ppo --resume  # one part, continuing its runs in runs/rl
+    python benchmarks/bench_rl.py --quick              # smoke run of every part (a few minutes), records nothing
 
-    python benchmarks/bench_rl.py                      # full run (~50 min on 2 cores at 640x480), records RESULTS.md
-    python benchmarks/bench_rl.py --only ppo           # one algorithm (records only with both)
-    python benchmarks/bench_rl.py --quick              # smoke run, records nothing
+Longer recipe for a GPU machine (16 cores, one GPU: the DON on the GPU on 8 envs' images at once, their
+physics in 8 subprocesses, a gradient step per env step)::
+
+    python benchmarks/bench_rl.py --device cuda --vectorize batched-async --sac-envs 8 \\
+        --sac-steps 1000000 --sac-don-steps 300000 --sac-goal place --ppo-steps 4096 --images-steps 20000
 """
 
 from __future__ import annotations
 
 import argparse
-import math
+import json
 import sys
 import tempfile
 import time
@@ -44,24 +49,25 @@ from _results import record_section  # noqa: E402
 
 from don_gym.agents import AxisGraspAgent, rl  # noqa: E402
 from don_gym.errors import DonGymError  # noqa: E402
+from don_gym.io import write_text_atomic  # noqa: E402
+from don_gym.plotting import plot_learning_curve  # noqa: E402
+from don_gym.stats import wilson_interval  # noqa: E402
 from don_gym.zoo import read_don_metadata, shipped_names  # noqa: E402
 
 FIGURES = Path(__file__).resolve().parent / "figures"
+DEFAULT_OUT = Path(__file__).resolve().parent.parent / "runs" / "rl"
 #: Held-out evaluation episodes are reset with EVAL_SEED + i; training envs draw from seed + i.
 EVAL_SEED = 100_000
 #: Preferred keypoint model: the shipped supervised network; the oracle until it exists.
 PREFERRED_MODEL = "toolcap/supervised-edge"
 ORACLE_IMAGE_SIZE = (160, 120)  # no network to match: small images keep the oracle runs cheap
-
-
-def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """95 % Wilson score interval of a success rate."""
-    if n == 0:
-        return 0.0, 1.0
-    p = successes / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return max(0.0, centre - half), min(1.0, centre + half)
+PARTS = ("throughput", "ppo", "images", "sac")
+#: SAC keypoint sources, in the order of the curves.
+SAC_SOURCES = ("simulated", "don", "true")
+TABLE_HEAD = (
+    "| policy | success (grasp_and_place) | 95 % interval | grasp_only | fail | mean return | s / episode |\n"
+    "|---|---|---|---|---|---|---|"
+)
 
 
 def _row(name: str, result: rl.EvaluationResult) -> str:
@@ -76,53 +82,136 @@ def _row(name: str, result: rl.EvaluationResult) -> str:
     )
 
 
-TABLE_HEAD = (
-    "| policy | success (grasp_and_place) | 95 % interval | grasp_only | fail | mean return | s / episode |\n"
-    "|---|---|---|---|---|---|---|"
-)
+def _summary(result: rl.EvaluationResult) -> dict[str, Any]:
+    n, wins = len(result.successes), int(sum(result.successes))
+    interval = list(wilson_interval(wins, n))
+    return {"successes": wins, "episodes": n, "wilson_95": interval, "mean_return": result.mean_return}
 
 
-def _axis_grasp_policy(keypoint_model: str, env_kwargs: dict[str, Any]) -> tuple[Any, Any]:
+def _shown(figure: Path) -> str:
+    """A figure's path as RESULTS.md names it (relative to the repository), or as written."""
+    return f"benchmarks/figures/{figure.name}" if figure.parent == FIGURES else str(figure)
+
+
+def _train(args: argparse.Namespace, name: str, algorithm: str, steps: int, **kwargs: Any) -> rl.RLTrainResult:
+    run_dir = args.out / name
+    resume = args.resume and (run_dir / rl.RUN_FILES["last_model"]).is_file()
+    return rl.train(
+        algorithm, steps, seed=args.seed, run_dir=run_dir, resume=resume, device=args.train_device,
+        don_device=args.device, **kwargs,
+    )  # fmt: skip
+
+
+def _curve_entry(label: str, curve: rl.LearningCurve, window: int) -> tuple[str, Any]:
+    return label, curve.rolling(window)
+
+
+# ------------------------------------------------------------------------------------ throughput
+def _networks_to(vec_env: Any, device: str) -> None:
+    """Move the DON of every per-env keypoint wrapper of a DummyVecEnv to ``device``."""
+    for env in getattr(vec_env, "envs", []):
+        source = env.get_wrapper_attr("source")
+        network = getattr(source, "network", None)
+        if network is not None:
+            network.to(device)
+
+
+def run_throughput(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[str, Any]]:
+    """Steps/s of the SAC env (``control="ee"``, DON keypoints) under random actions, per-env inference vs
+    one batched DON pass per step, for each number of envs, in this run."""
+    env_kwargs = {"keypoint_model": keypoint_model, "image_size": args.image_size, "sensor": args.sensor}
+    rows, summary = [], {}
+    device = args.device
+    for n_envs in args.throughput_envs:
+        measured = {}
+        for mode, vectorize in (("per-env", "dummy"), ("batched", args.vectorize)):
+            vec_env = rl.make_vec_env("sac", n_envs, args.seed, env_kwargs, vectorize, don_device=device)
+            if mode == "per-env":
+                _networks_to(vec_env, device)
+            rng = np.random.default_rng(args.seed)
+            actions = rng.uniform(-1, 1, size=(args.throughput_steps + 1, n_envs, 5)).astype(np.float32)
+            try:
+                vec_env.reset()
+                vec_env.step(actions[0])  # warm-up: first network call, caches
+                start = time.perf_counter()
+                for action in actions[1:]:
+                    vec_env.step(action)
+                elapsed = time.perf_counter() - start
+            finally:
+                vec_env.close()
+            measured[mode] = n_envs * args.throughput_steps / elapsed
+            print(f"throughput: {n_envs} env(s), {mode}: {measured[mode]:.1f} steps/s")
+        rows.append(
+            f"| {n_envs} | {measured['per-env']:.1f} | {measured['batched']:.1f} | "
+            f"{measured['batched'] / measured['per-env']:.2f}x |"
+        )
+        summary[str(n_envs)] = measured
+    body = [
+        f'**Throughput** of `control="ee"` with keypoints from `{keypoint_model}` '
+        f"({args.image_size[0]}x{args.image_size[1]}, sensor `{args.sensor}`), random actions, "
+        f"{args.throughput_steps} steps after one warm-up step, env steps per second over all envs; the DON on "
+        f"`{device}`; sub-envs stepped one after another in this process (`batched`: vectorize `{args.vectorize}`).",
+        "",
+        "| envs | per-env DON (steps/s) | one DON pass per step (steps/s) | speed-up |",
+        "|---|---|---|---|",
+        *rows,
+    ]
+    return "\n".join(body), {"throughput_steps_per_s": summary}
+
+
+# ------------------------------------------------------------------------------------------ PPO
+def _axis_grasp_policy(keypoint_model: str, image_size: tuple[int, int], sensor: str) -> tuple[Any, Any]:
     """(env, policy) of the scripted AxisGraspAgent on the same keypoint model and images."""
-    env = gym.make(
-        "DONPick-v0",
-        object="toolcap",
-        control="grasp",
-        image_size=env_kwargs["image_size"],
-        sensor=env_kwargs["sensor"],
-    )
+    env = gym.make("DONPick-v0", object="toolcap", control="grasp", image_size=image_size, sensor=sensor)
     agent = AxisGraspAgent(env, model=keypoint_model)
     return agent.env, agent.act
 
 
 def run_ppo(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[str, Any]]:
-    env_kwargs = {
+    """PPO on grasp from DON keypoints and from a model of the DON, residual actions in the keypoints' axis
+    frame, dense reward, ``--ppo-steps`` one-step episodes each; evaluated with baselines on held-out seeds."""
+    base_kwargs = {
         "keypoint_model": keypoint_model,
-        "image_size": tuple(args.ppo_image_size),
+        "image_size": args.image_size,
         "sensor": args.sensor,
         "reward_type": "dense",
-        "action_frame": "keypoints",
+        "action_frame": "axis",
     }
-    # Keep the rollout (steps per PPO update) the same whatever the number of envs.
+    don_kwargs = base_kwargs | {"keypoints": "don"}
+    sim_kwargs = base_kwargs | {"keypoints": "simulated"}
     n_steps = max(1, rl.DEFAULT_ALGO_KWARGS["ppo"]["n_steps"] // args.ppo_envs)
-    trained = rl.train(
-        "ppo", args.ppo_steps, args.seed, args.ppo_envs, env_kwargs=env_kwargs, algo_kwargs={"n_steps": n_steps}
+    algo = {"n_steps": n_steps}
+    trained = _train(
+        args, "ppo_don", "ppo", args.ppo_steps, n_envs=args.ppo_envs, env_kwargs=don_kwargs, algo_kwargs=algo
     )
-    env = rl.make_ppo_env(**env_kwargs)
+    simulated = _train(
+        args, "ppo_simulated", "ppo", args.ppo_steps, n_envs=args.ppo_envs, env_kwargs=sim_kwargs, algo_kwargs=algo
+    )
     n = args.ppo_eval_episodes
-    results = {"PPO (deterministic)": rl.evaluate(env, rl.model_policy(trained.model), n, EVAL_SEED, "eval PPO")}
-    results["random, keypoint frame"] = rl.evaluate(
-        env, rl.random_policy(env.action_space, args.seed), n, EVAL_SEED, "eval random (keypoint frame)"
+    env = rl.make_ppo_env(**don_kwargs)
+    results = {"PPO, DON keypoints": rl.evaluate(env, rl.model_policy(trained.model), n, EVAL_SEED, "eval PPO")}
+    results["PPO trained on the model of the DON, run with the DON"] = rl.evaluate(
+        env, rl.model_policy(simulated.model), n, EVAL_SEED, "eval PPO (simulated -> DON)"
     )
-    # A bare env for the policies that act in the env's own action space: same seeds, same episodes.
+    sim_env = rl.make_ppo_env(**sim_kwargs)
+    results["PPO trained on the model of the DON, run on it"] = rl.evaluate(
+        sim_env, rl.model_policy(simulated.model), n, EVAL_SEED, "eval PPO (simulated)"
+    )
+    sim_env.close()
+    results["zero residual (keypoint axis grasp)"] = rl.evaluate(
+        env, lambda _obs: np.zeros(4, np.float32), n, EVAL_SEED, "eval zero residual"
+    )
+    results["random residual"] = rl.evaluate(
+        env, rl.random_policy(env.action_space, args.seed), n, EVAL_SEED, "eval random (axis frame)"
+    )
     base = gym.make(
-        "DONPick-v0", object="toolcap", control="grasp", image_size=env_kwargs["image_size"], sensor=args.sensor,
+        "DONPick-v0", object="toolcap", control="grasp", image_size=args.image_size, sensor=args.sensor,
         reward_type="dense",
     ).unwrapped  # fmt: skip
     results["random, whole action box"] = rl.evaluate(
         base, rl.random_policy(base.action_space, args.seed), n, EVAL_SEED, "eval random (box)"
     )
-    axis_env, axis_policy = _axis_grasp_policy(keypoint_model, env_kwargs)
+    axis_env, axis_policy = _axis_grasp_policy(keypoint_model, args.image_size, args.sensor)
     results["AxisGraspAgent (scripted)"] = rl.evaluate(axis_env, axis_policy, n, EVAL_SEED, "eval AxisGraspAgent")
     axis_env.close()
     results["oracle grasp (true pose)"] = rl.evaluate(
@@ -131,90 +220,168 @@ def run_ppo(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
     env.close()
     base.close()
 
-    curve = trained.curve
-    window = max(10, min(50, len(curve.successes) // 5))
-    reference = [(f"eval: {name}", r.success_rate, r.mean_return) for name, r in results.items()]
+    window = max(10, min(50, len(trained.curve.successes) // 5))
     figure = args.figures / "rl_ppo_grasp.png"
-    rl.plot_learning_curve(
-        [("PPO training episodes (stochastic policy)", curve)],
+    plot_learning_curve(
+        [
+            _curve_entry("PPO, DON keypoints (stochastic policy)", trained.curve, window),
+            _curve_entry("PPO, model of the DON (stochastic policy)", simulated.curve, window),
+        ],
         figure,
         window,
-        f"PPO, control='grasp', keypoints from {keypoint_model}",
-        reference_lines=reference,
+        f"PPO, control='grasp', axis-frame residuals, keypoints of {keypoint_model}",
+        reference_lines=[(f"eval: {name}", r.success_rate, r.mean_return) for name, r in results.items()],
     )
-    last = curve.successes[-window:]
-    n_episodes = len(curve.successes)
+    last = trained.curve.successes[-window:]
+    gap = (
+        results["PPO trained on the model of the DON, run on it"].success_rate
+        - results["PPO trained on the model of the DON, run with the DON"].success_rate
+    )
     body = [
-        f'**PPO on `control="grasp"`**: {args.ppo_steps} training env steps = {n_episodes} grasp-and-place '
-        f"episodes (one step each), {trained.wall_s / 60:.1f} min ({trained.wall_s / max(args.ppo_steps, 1):.2f} s "
-        f"per episode, {args.ppo_envs} env(s)); success rate of the last {window} training episodes "
-        f"(stochastic policy): {np.mean(last):.0%}. Keypoints: `{keypoint_model}`, "
-        f"{env_kwargs['image_size'][0]}x{env_kwargs['image_size'][1]} images, sensor `{args.sensor}`; dense "
-        f"reward; keypoint-centred actions; PPO rollouts of {n_steps * args.ppo_envs} steps, "
-        f"batch {rl.DEFAULT_ALGO_KWARGS['ppo']['batch_size']}, "
-        f"{rl.DEFAULT_ALGO_KWARGS['ppo']['n_epochs']} epochs, MLP 64x64, seed {args.seed}. "
-        f"Learning curve: `{_shown(figure)}`.",
+        f'**PPO on `control="grasp"`**: {args.ppo_steps} one-step grasp-and-place episodes per run, '
+        f"{args.ppo_envs} env(s); DON keypoints: {trained.wall_s / 60:.1f} min, success of the last {window} "
+        f"training episodes (stochastic policy) {np.mean(last):.0%}; model of the DON (`SimulatedKeypoints` with "
+        f"the network's default noise model, no rendering): {simulated.wall_s / 60:.1f} min. Keypoints: "
+        f"`{keypoint_model}`, {args.image_size[0]}x{args.image_size[1]}, sensor `{args.sensor}`; dense reward; "
+        "actions are residuals about the keypoints' own grasp (midpoint, axis yaw: action 0 grasps there); PPO "
+        f"rollouts of {n_steps * args.ppo_envs} steps, MLP 64x64, seed {args.seed}. Runs: `{args.out}/ppo_don`, "
+        f"`{args.out}/ppo_simulated`. Learning curves: `{_shown(figure)}`.",
         "",
-        f"Evaluation on the same {n} held-out episodes (seeds {EVAL_SEED}..{EVAL_SEED + n - 1}):",
+        f"Evaluation on the same {n} held-out episodes (seeds {EVAL_SEED}..{EVAL_SEED + n - 1}); transfer gap of "
+        f"the policy trained on the model of the DON (its success there minus with the DON): {gap:+.0%}.",
         "",
         TABLE_HEAD,
         *[_row(name, result) for name, result in results.items()],
     ]
-    summary = {name: r.success_rate for name, r in results.items()}
-    return "\n".join(body), summary
+    return "\n".join(body), {f"ppo/{name}": _summary(r) for name, r in results.items()}
 
 
-def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[str, Any]]:
+def run_images(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[str, Any]]:
+    """PPO from descriptor images (uint8, SB3's NatureCNN), actions spanning the whole action box."""
     env_kwargs = {
         "keypoint_model": keypoint_model,
-        "image_size": tuple(args.sac_image_size),
+        "image_size": args.image_size,
+        "cnn_size": tuple(args.cnn_size),
         "sensor": args.sensor,
         "reward_type": "dense",
-        "max_steps": args.sac_max_steps,
     }
-    sac = rl.DEFAULT_ALGO_KWARGS["sac"] | {"learning_starts": args.sac_learning_starts}
-    # One env in this process: SAC takes a gradient step per env step, so a second env would halve them.
-    trained = rl.train("sac", args.sac_steps, seed=args.seed, n_envs=1, env_kwargs=env_kwargs, algo_kwargs=sac)
-    env = rl.make_sac_env(**env_kwargs)
-    n = args.sac_eval_episodes
+    n_steps = max(1, rl.DEFAULT_ALGO_KWARGS["ppo-images"]["n_steps"] // args.ppo_envs)
+    trained = _train(
+        args, "ppo_images", "ppo-images", args.images_steps, n_envs=args.ppo_envs, env_kwargs=env_kwargs,
+        algo_kwargs={"n_steps": n_steps},
+    )  # fmt: skip
+    extractor = type(trained.model.policy.features_extractor.extractors["descriptors"]).__name__
+    env = rl.make_image_env(**env_kwargs)
+    n = args.ppo_eval_episodes
     results = {
-        "SAC (deterministic)": rl.evaluate(env, rl.model_policy(trained.model), n, EVAL_SEED, "eval SAC"),
-        "random": rl.evaluate(env, rl.random_policy(env.action_space, args.seed), n, EVAL_SEED, "eval random"),
+        "PPO, descriptor images": rl.evaluate(env, rl.model_policy(trained.model), n, EVAL_SEED, "eval PPO images"),
+        "random, whole action box": rl.evaluate(
+            env, rl.random_policy(env.action_space, args.seed), n, EVAL_SEED, "eval random (box)"
+        ),
     }
     env.close()
-    curve = trained.curve
-    window = max(3, min(20, len(curve.successes) // 5))
-    figure = args.figures / "rl_sac_ee.png"
-    rl.plot_learning_curve(
-        [("SAC training episodes (stochastic policy)", curve)],
+    window = max(10, min(50, len(trained.curve.successes) // 5))
+    figure = args.figures / "rl_ppo_images.png"
+    plot_learning_curve(
+        [_curve_entry("PPO, descriptor images (stochastic policy)", trained.curve, window)],
         figure,
         window,
-        f"SAC, control='ee', keypoints from {keypoint_model}",
+        f"PPO, control='grasp', descriptor images of {keypoint_model}",
         reference_lines=[(f"eval: {name}", r.success_rate, r.mean_return) for name, r in results.items()],
     )
     body = [
-        f'**SAC on `control="ee"`**: {args.sac_steps} training env steps (25 Hz) = {len(curve.successes)} '
-        f"episodes of at most {args.sac_max_steps} steps, {trained.wall_s / 60:.1f} min "
-        f"({1000 * trained.wall_s / max(args.sac_steps, 1):.0f} ms per step including the gradient step). "
-        f"Observation: TCP pose, gripper width and the keypoints of the current wrist image "
-        f"(`{keypoint_model}`, {env_kwargs['image_size'][0]}x{env_kwargs['image_size'][1]}, sensor `{args.sensor}`); "
-        f"dense reward; SAC learning starts {sac['learning_starts']}, batch {sac['batch_size']}, MLP 128x128, "
-        f"seed {args.seed}. Learning curve: `{_shown(figure)}`.",
-        "",
-        f"Evaluation on the same {n} held-out episodes (seeds {EVAL_SEED}..{EVAL_SEED + n - 1}); "
-        "grasp_only here means the part was lifted at some point but did not end at rest in the cradle:",
+        f"**PPO from descriptor images** (beside the keypoint baseline): {args.images_steps} episodes, "
+        f"{trained.wall_s / 60:.1f} min; the `{keypoint_model}` descriptor image resized to "
+        f"{args.cnn_size[0]}x{args.cnn_size[1]}, clipped to [0, 1] and quantised to uint8 (`DescriptorImage`), "
+        f"through SB3's `{extractor}`; actions span the env's action box (the policy has to find the part). "
+        f"Run: `{args.out}/ppo_images`. Learning curve: `{_shown(figure)}`.",
         "",
         TABLE_HEAD,
         *[_row(name, result) for name, result in results.items()],
     ]
-    return "\n".join(body), {name: r.success_rate for name, r in results.items()}
+    return "\n".join(body), {f"images/{name}": _summary(r) for name, r in results.items()}
 
 
-def _shown(figure: Path) -> str:
-    """A figure's path as RESULTS.md names it (relative to the repository), or as written."""
-    return f"benchmarks/figures/{figure.name}" if figure.parent == FIGURES else str(figure)
+# ------------------------------------------------------------------------------------------ SAC
+def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[str, Any]]:
+    """SAC + HER on ee with goal ``--sac-goal``, one run per keypoint source, same seeds and settings."""
+    base_kwargs = {
+        "keypoint_model": keypoint_model,
+        "image_size": args.image_size,
+        "sensor": args.sensor,
+        "max_steps": args.sac_max_steps,
+        "goal": args.sac_goal,
+    }
+    algo = {"learning_starts": args.sac_learning_starts}
+    if args.sac_envs > 1:
+        algo["gradient_steps"] = -1  # a gradient step per env step, whatever the number of envs
+    steps = {"simulated": args.sac_steps, "true": args.sac_steps, "don": args.sac_don_steps}
+    runs = {}
+    for source in SAC_SOURCES:
+        vectorize = args.vectorize if (source == "don" and args.sac_envs > 1) else None
+        runs[source] = _train(
+            args, f"sac_{args.sac_goal}_{source}", "sac", steps[source], n_envs=args.sac_envs,
+            env_kwargs=base_kwargs | {"keypoints": source}, algo_kwargs=algo, vectorize=vectorize,
+        )  # fmt: skip
+    n = args.sac_eval_episodes
+    results = {}
+    for source in SAC_SOURCES:
+        env = rl.make_sac_env(**base_kwargs, keypoints=source)
+        results[f"SAC+HER, {source} keypoints"] = rl.evaluate(
+            env, rl.model_policy(runs[source].model), n, EVAL_SEED, f"eval SAC ({source})"
+        )
+        if source == "don":
+            results["SAC+HER trained on simulated keypoints, run with the DON"] = rl.evaluate(
+                env, rl.model_policy(runs["simulated"].model), n, EVAL_SEED, "eval SAC (simulated -> DON)"
+            )
+            results["random"] = rl.evaluate(
+                env, rl.random_policy(env.action_space, args.seed), n, EVAL_SEED, "eval random"
+            )
+        env.close()
+    window = max(3, min(50, min(len(r.curve.successes) for r in runs.values()) // 5))
+    figure = args.figures / f"rl_sac_her_{args.sac_goal}.png"
+    plot_learning_curve(
+        [_curve_entry(f"{source} keypoints", runs[source].curve, window) for source in SAC_SOURCES],
+        figure,
+        window,
+        f"SAC+HER, control='ee', goal '{args.sac_goal}', keypoints: simulated / {keypoint_model} / true",
+        reference_lines=[(f"eval: {name}", r.success_rate, r.mean_return) for name, r in results.items()],
+    )
+    gap = (
+        results["SAC+HER, simulated keypoints"].success_rate
+        - results["SAC+HER trained on simulated keypoints, run with the DON"].success_rate
+    )
+    times = ", ".join(
+        f"{source} {steps[source]} steps in {runs[source].wall_s / 60:.1f} min "
+        f"({1000 * runs[source].wall_s / max(steps[source], 1):.0f} ms/step)"
+        for source in SAC_SOURCES
+    )
+    goal_text = (
+        "the `lift` sub-task (the part's keypoints 6 cm above where it lay; the full `place` task is beyond "
+        "this CPU budget)"
+        if args.sac_goal == "lift"
+        else "the full `place` task (keypoints of the part seated in the cradle)"
+    )
+    body = [
+        f'**SAC with HER on `control="ee"`**, goal: {goal_text}; sparse goal reward, episodes of at most '
+        f"{args.sac_max_steps} steps, {args.sac_envs} env(s); policy input: TCP pose, gripper width and the "
+        "keypoints of each frame (the true `achieved_goal` only relabels and rewards, it is not a policy input) "
+        f"plus the desired goal. Keypoints: `simulated` (a model of `{keypoint_model}`, no rendering), `don` "
+        f"(`{keypoint_model}` on {args.image_size[0]}x{args.image_size[1]} wrist images), `true` (exact, always "
+        f"seen). {times}. Learning starts {args.sac_learning_starts}, MLP 256x256, seed {args.seed}. Runs: "
+        f"`{args.out}/sac_{args.sac_goal}_*`. Learning curves: `{_shown(figure)}`.",
+        "",
+        f"Evaluation on the same {n} held-out episodes (seeds {EVAL_SEED}..{EVAL_SEED + n - 1}), every policy with "
+        f"its own keypoints unless said; transfer gap of the simulated-keypoint policy (there minus with the "
+        f"DON): {gap:+.0%}. Success: `info['is_success']` at the episode's end.",
+        "",
+        TABLE_HEAD,
+        *[_row(name, result) for name, result in results.items()],
+    ]
+    return "\n".join(body), {f"sac/{name}": _summary(r) for name, r in results.items()}
 
 
+# ----------------------------------------------------------------------------------------- main
 def keypoint_image_size(keypoint_model: str) -> tuple[int, int]:
     """(width, height) the keypoint network was trained at; 160x120 for the oracle (no network)."""
     if keypoint_model == "oracle":
@@ -223,70 +390,88 @@ def keypoint_image_size(keypoint_model: str) -> tuple[int, int]:
     return tuple(read_don_metadata(keypoint_model, expect_object="toolcap").image_size)
 
 
-def _pixels(text: str) -> int:
+def _positive(text: str) -> int:
     value = int(text)
     if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a positive number of pixels")
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a positive integer")
     return value
 
 
-def _add_image_size_option(parser: argparse.ArgumentParser, algorithm: str) -> None:
-    parser.add_argument(
-        f"--{algorithm}-image-size",
-        type=_pixels,
-        nargs=2,
-        default=None,
-        metavar=("W", "H"),
-        help="wrist camera size (default: the size the keypoint network was trained at; 160x120 for the oracle)",
-    )
-
-
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--only", choices=rl.ALGORITHMS, help="run one algorithm (then nothing is recorded)")
+    parser.add_argument("--only", action="append", choices=PARTS, help="run these parts (repeatable); records nothing")
     parser.add_argument(
         "--keypoint-model", default=None, help=f"default: {PREFERRED_MODEL!r} if shipped, else 'oracle'"
     )
     parser.add_argument("--sensor", default="d435")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
-        "--ppo-envs", type=int, default=2, help="PPO envs, in subprocesses when > 1 (SAC: always one env in-process)"
-    )
-    parser.add_argument("--ppo-steps", type=int, default=1024, help="grasp episodes (one env step each)")
-    parser.add_argument("--ppo-eval-episodes", type=int, default=50)
-    _add_image_size_option(parser, "ppo")
-    parser.add_argument("--sac-steps", type=int, default=10000)
-    parser.add_argument("--sac-max-steps", type=int, default=100)
-    parser.add_argument("--sac-learning-starts", type=int, default=rl.DEFAULT_ALGO_KWARGS["sac"]["learning_starts"])
-    parser.add_argument("--sac-eval-episodes", type=int, default=20)
-    _add_image_size_option(parser, "sac")
-    parser.add_argument("--quick", action="store_true", help="tiny budgets, records nothing")
+        "--image-size", type=_positive, nargs=2, default=None, metavar=("W", "H"),
+        help="wrist camera size (default: the size the keypoint network was trained at; 160x120 for the oracle)",
+    )  # fmt: skip
+    parser.add_argument("--out", type=Path, default=None, help=f"run directories (default {DEFAULT_OUT})")
+    parser.add_argument("--resume", action="store_true", help="continue the runs saved in --out")
+    parser.add_argument("--device", default=None, help="where the DON runs (default: cuda if available, else cpu)")
+    parser.add_argument("--train-device", default="cpu", help="where the policies train")
+    parser.add_argument("--vectorize", choices=("batched", "batched-async"), default="batched")
+    parser.add_argument("--throughput-envs", type=_positive, nargs="+", default=[1, 4, 8])
+    parser.add_argument("--throughput-steps", type=_positive, default=20)
+    parser.add_argument("--ppo-envs", type=_positive, default=2, help="PPO envs, in subprocesses when > 1")
+    parser.add_argument("--ppo-steps", type=_positive, default=1024, help="grasp episodes (one env step each)")
+    parser.add_argument("--ppo-eval-episodes", type=_positive, default=50)
+    parser.add_argument("--images-steps", type=_positive, default=1024)
+    parser.add_argument("--cnn-size", type=_positive, nargs=2, default=[80, 60], metavar=("W", "H"))
+    parser.add_argument("--sac-goal", choices=("lift", "place"), default="lift")
+    parser.add_argument("--sac-envs", type=_positive, default=1)
+    parser.add_argument("--sac-steps", type=_positive, default=50_000, help="env steps, simulated and true keypoints")
+    parser.add_argument("--sac-don-steps", type=_positive, default=10_000, help="env steps, DON keypoints")
+    parser.add_argument("--sac-max-steps", type=_positive, default=50)
+    parser.add_argument("--sac-learning-starts", type=int, default=rl.DEFAULT_ALGO_KWARGS["sac-her"]["learning_starts"])
+    parser.add_argument("--sac-eval-episodes", type=_positive, default=20)
+    parser.add_argument("--quick", action="store_true", help="tiny budgets into a temporary directory, records nothing")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _parser()
     args = parser.parse_args(argv)
     rl.require_sb3()
     torch.set_num_threads(1)
+    parts = list(dict.fromkeys(args.only or PARTS))
     if args.quick:
-        args.ppo_steps, args.ppo_eval_episodes = 32, 4
-        args.sac_steps, args.sac_max_steps, args.sac_eval_episodes, args.sac_learning_starts = 300, 50, 2, 100
+        args.throughput_envs, args.throughput_steps = [1, 2], 2
+        args.ppo_steps, args.ppo_eval_episodes, args.images_steps = 16, 3, 16
+        args.sac_steps, args.sac_don_steps, args.sac_max_steps = 120, 40, 20
+        args.sac_learning_starts, args.sac_eval_episodes = 20, 2
+    records = not (args.quick or args.only)
+    scratch = Path(tempfile.mkdtemp(prefix="don_gym_rl_")) if args.quick else None
+    args.out = args.out or (scratch / "runs" if scratch else DEFAULT_OUT)
     # Runs that record nothing keep their figures out of benchmarks/figures too.
-    args.figures = FIGURES if not (args.quick or args.only) else Path(tempfile.mkdtemp(prefix="don_gym_rl_"))
+    args.figures = FIGURES if records else (scratch or args.out) / "figures"
+    args.figures.mkdir(parents=True, exist_ok=True)
     keypoint_model = args.keypoint_model or (PREFERRED_MODEL if PREFERRED_MODEL in shipped_names() else "oracle")
     if keypoint_model == "oracle":
         print("keypoints from the oracle (true-pose descriptors): a pipeline check, not a perception result")
-    # A DON is not scale invariant: by default the camera shows the part at the network's training size.
-    try:
+    try:  # unknown name, checkpoint for another object: say so before any training
         default_size = keypoint_image_size(keypoint_model)
-    except DonGymError as exc:  # unknown name, checkpoint for another object: say so before any training
+    except DonGymError as exc:
         parser.error(str(exc))
-    args.ppo_image_size = tuple(args.ppo_image_size or default_size)
-    args.sac_image_size = tuple(args.sac_image_size or default_size)
+    args.image_size = tuple(args.image_size or default_size)
+    if args.device is None:
+        args.device = "cuda" if torch.cuda.is_available() else "cpu"
 
     start = time.perf_counter()
-    sections, summary = [], {}
-    for algorithm, runner in (("ppo", run_ppo), ("sac", run_sac)):
-        if args.only in (None, algorithm):
-            text, rates = runner(args, keypoint_model)
-            sections.append(text)
-            summary |= rates
+    runners = {"throughput": run_throughput, "ppo": run_ppo, "images": run_images, "sac": run_sac}
+    sections, summary = [], {"keypoint_model": keypoint_model, "eval_seeds": [EVAL_SEED], "seed": args.seed}
+    for part in parts:
+        try:
+            text, results = runners[part](args, keypoint_model)
+        except DonGymError as exc:
+            print(f"bench_rl: {part}: {exc}", file=sys.stderr)
+            return 2
+        sections.append(text)
+        summary |= results
+    write_text_atomic(args.out / "summary.json", json.dumps(summary, indent=1) + "\n")
     oracle_note = (
         " The keypoints come from the oracle (descriptors rendered from the true pose): this checks the "
         "pipeline, it is not a perception result."
@@ -294,17 +479,17 @@ def main(argv: list[str] | None = None) -> int:
         else ""
     )
     intro = (
-        "stable-baselines3 baselines on the toolcap with a short CPU budget; the policies see the part only "
-        f"through the two axis-end DON keypoints from `{keypoint_model}`.{oracle_note} Success = "
-        "`info['is_success']` (grasp_and_place) at the end of an episode. Budgets are far below what these "
-        "algorithms usually need: read the numbers as where a short run gets, not as what RL can reach."
+        "stable-baselines3 baselines on the toolcap; the policies see the part only through the two axis-end "
+        f"keypoints of `{keypoint_model}` (or its descriptor images).{oracle_note} Success = "
+        "`info['is_success']` (grasp_and_place, or the lift goal) at the end of an episode, 95 % Wilson intervals."
     )
     body = intro + "\n\n" + "\n\n".join(sections) + f"\n\nTotal wall time {(time.perf_counter() - start) / 60:.1f} min."
     print(body)
-    if args.quick or args.only is not None:
-        print("(--quick or --only: RESULTS.md not updated)")
-    else:
+    print(f"runs, figures and summary.json: {args.out} {args.figures}")
+    if records:
         record_section("rl", "RL baselines (stable-baselines3)", body)
+    else:
+        print("(--quick or --only: RESULTS.md not updated)")
     return 0
 
 

@@ -1,22 +1,21 @@
 """Training throughput and single-frame inference latency of the DON networks.
 
-For each network size (default: the CPU-sized ``resnet-lite`` and the paper's
-``resnet34``, the baseline) this measures
+For each network size (default: the CPU-sized ``resnet-lite`` and the paper's ``resnet34``, the baseline),
+timed in alternation so that machine load hits all alike: training images per second, inference ms per frame
+on the CPU (target for the default network: at most 30 ms per 320x240 frame), parameter count and checkpoint
+sizes. Results go to the "train-speed" section of benchmarks/RESULTS.md (not with --quick).
 
-- training images per second: forward + supervised l2 loss + backward + Adam step on
-  random images, targets and object masks of the given size and batch, on ``--device``;
-- inference milliseconds per frame through ``DenseObjectNet.descriptor_image`` (uint8
-  HWC in, float32 HWD out), on the CPU with ``torch.set_num_threads(2)``: warm-up, then
-  the median (and 90th percentile, minimum) over repeats. The target for the default network is at
-  most 30 ms per 320x240 frame;
-- parameter count and the size of a float32 and a float16 checkpoint file written by
-  ``don_gym.checkpoints.save_checkpoint``.
+Further parts (``--parts``), each against its baseline in the same run, on a dataset it builds once
+(640x480 toolcap frames, cached in the temp directory) and the real training code:
 
-The networks are timed in alternation (one step or frame each, in turn) so that a change
-in machine load during the run affects all of them alike and the ratios stay fair.
-Results go to the "train-speed" section of benchmarks/RESULTS.md (not with --quick).
+- ``loader`` ("train-loader"): training images/s of ``resnet-lite`` on 128x128 crops with batches built
+  in the training loop (``--workers 0``, the baseline) and in worker processes, in alternating blocks;
+- ``ddp`` ("train-ddp"): ``don-gym train`` in one process against ``torchrun`` with 2 gloo processes;
+- ``gpu`` ("train-gpu", needs CUDA; ``benchmarks/device_check_train.sh``): images/s of ``resnet-lite`` and
+  ``resnet34`` on whole 640x480 frames, fp32 against mixed precision, and the share of step time spent
+  waiting for data.
 
-    python benchmarks/bench_train.py            # full run, records RESULTS.md
+    python benchmarks/bench_train.py            # full run (speed, loader, ddp), records RESULTS.md
     python benchmarks/bench_train.py --quick    # smoke run, few repeats, records nothing
 """
 
@@ -24,9 +23,11 @@ from __future__ import annotations
 
 import argparse
 import os
+import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -36,12 +37,22 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _results import record_section  # noqa: E402
 
+from don_gym.augment import AugmentConfig  # noqa: E402
+from don_gym.build import DatasetConfig, build_dataset  # noqa: E402
 from don_gym.checkpoints import CheckpointMetadata, save_checkpoint  # noqa: E402
 from don_gym.losses import supervised_l2_loss  # noqa: E402
 from don_gym.model import ARCHS, DEFAULT_ARCH, DenseObjectNet, count_parameters  # noqa: E402
+from don_gym.torch_data import StepBatches, SupervisedFrames, step_loader  # noqa: E402
+from don_gym.train import TRAIN_STATE, TrainConfig, train  # noqa: E402
 
 BASELINE_ARCH = "resnet34"
 TARGET_MS = 30.0
+PARTS = ("speed", "loader", "ddp", "gpu")
+#: Frames and crops of the loader, ddp and gpu parts: the shipped networks' training set-up.
+FRAME_SIZE = (640, 480)
+CROP_SIZE = (128, 128)
+LOADER_TARGET = 1.4
+GPU_WAIT_TARGET = 0.10
 
 
 def _machine_busy_seconds() -> float | None:
@@ -115,16 +126,37 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         default=0.0,
         help="before each timing phase, wait up to this many seconds for other processes to leave the CPU idle",
     )
+    parser.add_argument(
+        "--parts",
+        default="speed,loader,ddp",
+        help=f"comma-separated parts among {', '.join(PARTS)} (default %(default)s)",
+    )
+    parser.add_argument("--loader-workers", default="1,2", help="worker counts timed against 0 (default 1,2)")
+    parser.add_argument("--loader-steps", type=int, default=10, help="timed steps per block of the loader part")
+    parser.add_argument("--loader-blocks", type=int, default=4, help="blocks per setting of the loader part")
+    parser.add_argument("--ddp-steps", type=int, default=24, help="timed steps of each run of the ddp part")
+    parser.add_argument("--gpu-steps", type=int, default=60, help="timed steps of each run of the gpu part")
+    parser.add_argument("--gpu-batch-size", type=int, default=8, help="batch of the gpu part (default 8)")
+    parser.add_argument(
+        "--gpu-workers", type=int, default=min(8, os.cpu_count() or 1), help="data workers of the gpu part"
+    )
     parser.add_argument("--quick", action="store_true", help="few steps and repeats; does not record RESULTS.md")
     parser.add_argument("--no-record", action="store_true", help="print only, do not update RESULTS.md")
     args = parser.parse_args(argv)
+    args.parts = [p.strip() for p in args.parts.split(",") if p.strip()]
+    if not set(args.parts) <= set(PARTS):
+        parser.error(f"unknown parts {sorted(set(args.parts) - set(PARTS))}; choose from {PARTS}")
+    args.loader_workers = [int(w) for w in str(args.loader_workers).split(",") if w.strip()]
     args.archs = [a.strip() for a in args.archs.split(",") if a.strip()]
     args.inference_threads = [int(t) for t in str(args.inference_threads).split(",") if t.strip()]
     unknown = [a for a in args.archs if a not in ARCHS]
     if unknown:
         parser.error(f"unknown arch {unknown}; choose from {sorted(ARCHS)}")
     if args.quick:
-        args.train_steps, args.train_warmup, args.repeats, args.warmup = 2, 1, 5, 2
+        args.train_steps, args.train_warmup, args.repeats, args.warmup = 1, 1, 3, 1
+        args.width, args.height, args.inference_threads = 160, 120, args.inference_threads[:1]
+        args.loader_steps, args.loader_blocks, args.loader_workers = 2, 1, args.loader_workers[-1:]
+        args.ddp_steps, args.gpu_steps = 2, 4
     if args.device == "auto":
         args.device = "cuda" if torch.cuda.is_available() else "cpu"
     return args
@@ -136,7 +168,11 @@ def _sync(device: torch.device) -> None:
 
 
 def time_training(args: argparse.Namespace) -> dict[str, list[float]]:
-    """Seconds per training step for each arch, the archs stepped in alternation."""
+    """Seconds per training step for each arch, the archs stepped in alternation.
+
+    A step is forward + supervised l2 loss + backward + Adam step on random images, targets and object
+    masks of the given size and batch, on ``--device``.
+    """
     device = torch.device(args.device)
     generator = torch.Generator().manual_seed(0)
     shape = (args.batch_size, 3, args.height, args.width)
@@ -149,7 +185,7 @@ def time_training(args: argparse.Namespace) -> dict[str, list[float]]:
     setups = {}
     for arch in args.archs:
         model = DenseObjectNet(arch, args.descriptor_dim).to(device).train()
-        # The original DON's optimiser settings (NOTES.md section 2).
+        # The original DON's optimiser settings (docs/background.md, section "Self-supervised DON training").
         setups[arch] = (model, torch.optim.Adam(model.parameters(), lr=1e-4, weight_decay=1e-4))
     step_seconds: dict[str, list[float]] = {arch: [] for arch in args.archs}
     for step in range(args.train_warmup + args.train_steps):
@@ -167,7 +203,10 @@ def time_training(args: argparse.Namespace) -> dict[str, list[float]]:
 
 
 def time_inference(args: argparse.Namespace, threads: int) -> dict[str, list[float]]:
-    """Milliseconds per ``descriptor_image`` call on the CPU with ``threads`` threads, the archs in alternation."""
+    """Milliseconds per ``descriptor_image`` call on the CPU with ``threads`` threads, the archs in alternation.
+
+    uint8 HWC in, float32 HWD out; warm-up first, the caller reports the median, 90th percentile and minimum.
+    """
     torch.set_num_threads(threads)
     rng = np.random.default_rng(0)
     frame = rng.integers(0, 256, size=(args.height, args.width, 3), dtype=np.uint8)
@@ -183,6 +222,7 @@ def time_inference(args: argparse.Namespace, threads: int) -> dict[str, list[flo
 
 
 def checkpoint_sizes_mb(arch: str, descriptor_dim: int, width: int, height: int) -> tuple[int, float, float]:
+    """Parameter count and the MB of a float32 and a float16 checkpoint written by ``save_checkpoint``."""
     model = DenseObjectNet(arch, descriptor_dim)
     metadata = CheckpointMetadata("supervised", "benchmark", "", (width, height))
     sizes = []
@@ -194,8 +234,8 @@ def checkpoint_sizes_mb(arch: str, descriptor_dim: int, width: int, height: int)
     return count_parameters(model), sizes[0], sizes[1]
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
+def run_speed(args: argparse.Namespace) -> None:
+    """The "train-speed" part: synthetic training steps and single-frame inference per network."""
     default_threads = torch.get_num_threads()
     load_before = os.getloadavg()
     print(
@@ -268,6 +308,214 @@ def main(argv: list[str] | None = None) -> int:
     else:
         record_section("train-speed", "DON training and inference speed", body)
         print("recorded section 'train-speed' in benchmarks/RESULTS.md")
+
+
+def _record(args: argparse.Namespace, name: str, title: str, body: str) -> None:
+    print(body, flush=True)
+    if args.quick or args.no_record:
+        print(f"(section '{name}' not recorded: --quick or --no-record)")
+    else:
+        record_section(name, title, body)
+        print(f"recorded section '{name}' in benchmarks/RESULTS.md")
+
+
+def benchmark_dataset(scenes: int, frames_per_scene: int, workers: int = 1) -> Path:
+    """Toolcap frames at :data:`FRAME_SIZE` for the supervised methods (no depth fusion), built once
+    into the temp directory; a later run reuses the finished scenes."""
+    width, height = FRAME_SIZE
+    root = Path(tempfile.gettempdir()) / "don_gym_bench_train" / f"toolcap_{width}x{height}_{scenes}x{frames_per_scene}"
+    config = DatasetConfig(
+        object="toolcap", scenes=scenes, frames_per_scene=frames_per_scene, image_size=FRAME_SIZE, fuse_depth=False
+    )
+    build_dataset(config, root, workers=workers, progress=False)
+    return root
+
+
+def _describe_load(load: OtherProcessLoad) -> str:
+    return f"CPU cores kept busy by other processes while timing (0 = the machine was ours): {load.describe()}."
+
+
+def run_loader(args: argparse.Namespace) -> None:
+    """The "train-loader" part: batches built in the training loop against worker processes.
+
+    Each setting trains ``resnet-lite`` in blocks of steps, the settings in alternation; a block
+    starts a fresh loader and leaves out its first steps, which only drain the loader's prefetch.
+    """
+    data = benchmark_dataset(1 if args.quick else 2, 4 if args.quick else 8)
+    torch.set_num_threads(1)  # as `don-gym train --threads 1` on a shared 2-core machine
+    batch_size = 8
+    frames = SupervisedFrames(str(data), variant="edge", crop_size=CROP_SIZE)
+    batches = StepBatches(frames, 10**9, batch_size, seed=0, augment_config=AugmentConfig())
+    torch.manual_seed(0)
+    model = DenseObjectNet(DEFAULT_ARCH, 3).train()
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3, weight_decay=1e-4)
+    settings = [0, *args.loader_workers]
+    seconds = dict.fromkeys(settings, 0.0)
+    waiting = dict.fromkeys(settings, 0.0)
+    step = 0
+    wait_for_quiet_machine(args.wait_quiet)
+    with OtherProcessLoad() as load:
+        for _ in range(args.loader_blocks):
+            for workers in settings:
+                iterator = iter(step_loader(batches, step, workers))
+                warm_up = 1 + 2 * workers
+                for index in range(warm_up + args.loader_steps):
+                    start = time.perf_counter()
+                    batch = next(iterator)
+                    arrived = time.perf_counter()
+                    loss = supervised_l2_loss(model(batch["rgb"]), batch["target"], batch["object_mask"])
+                    optimizer.zero_grad(set_to_none=True)
+                    loss.backward()
+                    optimizer.step()
+                    if index >= warm_up:
+                        seconds[workers] += time.perf_counter() - start
+                        waiting[workers] += arrived - start
+                del iterator  # ends the block's worker processes
+                step += warm_up + args.loader_steps
+    timed = args.loader_steps * args.loader_blocks
+    rate = {w: batch_size * timed / seconds[w] for w in settings}
+    names = {w: f"{w} worker process{'es' if w > 1 else ''}" for w in settings}
+    names[0] = "in the training loop (`--workers 0`, baseline)"
+    rows = [
+        f"| {names[w]} | {rate[w]:.1f} | {rate[w] / rate[0]:.2f}x | {100 * waiting[w] / seconds[w]:.0f}% |"
+        for w in settings
+    ]
+    best = max(settings[1:], key=lambda w: rate[w])
+    verdict = "met" if rate[best] / rate[0] >= LOADER_TARGET else "not met"
+    width, height = FRAME_SIZE
+    body = "\n".join(
+        [
+            f"`{DEFAULT_ARCH}`, supervised-edge targets, batch {batch_size} of {CROP_SIZE[0]}x{CROP_SIZE[1]} crops of "
+            f"{width}x{height} frames (PNG decoding, edge-blended targets, crops and augmentation per image), "
+            "forward + l2 loss + backward + Adam step, 1 torch thread in the training process. "
+            f"{args.loader_blocks} blocks of {args.loader_steps} timed steps per setting, settings in alternation, "
+            "each block after its loader's warm-up. Baseline: batches built in the training loop.",
+            "",
+            "| batches built | training images/s | vs baseline | share of step time waiting for data |",
+            "|---|---|---|---|",
+            *rows,
+            "",
+            f"Target: >= {LOADER_TARGET}x with worker processes ({best}: {rate[best] / rate[0]:.2f}x): {verdict}. "
+            + _describe_load(load),
+        ]
+    )
+    _record(args, "train-loader", "Training data loading: worker processes vs the training loop", body)
+
+
+def _cli_rate(launcher: list[str], data: Path, out: Path, steps: int, threads: int, workers: int) -> float:
+    """Training images/s of one `don-gym train` run, from the time and images its train_state.pt records."""
+    command = [
+        *launcher, "train", "--method", "supervised-edge", "--data", str(data), "--out", str(out),
+        "--steps", str(steps), "--batch-size", "8", "--crop", f"{CROP_SIZE[0]}x{CROP_SIZE[1]}",
+        "--threads", str(threads), "--workers", str(workers), "--checkpoint-every", str(steps),
+    ]  # fmt: skip
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
+    result = subprocess.run(command, capture_output=True, text=True, env=env, timeout=3600)
+    if result.returncode != 0:
+        raise RuntimeError(f"{' '.join(command)} failed:\n{result.stderr[-2000:]}")
+    state = torch.load(out / TRAIN_STATE, weights_only=True)
+    return float(state["images_seen"]) / float(state["seconds"])
+
+
+def run_ddp(args: argparse.Namespace) -> None:
+    """The "train-ddp" part: one process against torchrun with two gloo processes, same global batch."""
+    data = benchmark_dataset(1 if args.quick else 2, 4 if args.quick else 8)
+    single = [sys.executable, "-m", "don_gym.cli"]
+    torchrun = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc_per_node=2",
+        "-m",
+        "don_gym.cli",
+    ]
+    settings = [
+        ("1 process, 2 threads (baseline)", single, 2, 0),
+        ("1 process, 1 thread, 1 data worker", single, 1, 1),
+        ("torchrun, 2 gloo processes x 1 thread", torchrun, 1, 0),
+    ]
+    if args.quick:
+        settings = [settings[0], settings[2]]
+    rates = {}
+    wait_for_quiet_machine(args.wait_quiet)
+    with OtherProcessLoad() as load, tempfile.TemporaryDirectory() as tmp:
+        for index, (name, launcher, threads, workers) in enumerate(settings):
+            rates[name] = _cli_rate(launcher, data, Path(tmp) / f"run{index}", args.ddp_steps, threads, workers)
+    baseline = rates[settings[0][0]]
+    rows = [f"| {name} | {rate:.1f} | {rate / baseline:.2f}x |" for name, rate in rates.items()]
+    body = "\n".join(
+        [
+            f"`don-gym train --method supervised-edge --batch-size 8 --crop {CROP_SIZE[0]}x{CROP_SIZE[1]}` "
+            f"({DEFAULT_ARCH}) for {args.ddp_steps} steps on {FRAME_SIZE[0]}x{FRAME_SIZE[1]} frames; images/s from "
+            "the time the run records (its whole loop, first step included). Under torchrun each process trains "
+            "4 of the 8 images of a step, BatchNorm statistics synchronised over both. Baseline: one process "
+            "using both cores.",
+            "",
+            "| launch | training images/s | vs baseline |",
+            "|---|---|---|",
+            *rows,
+            "",
+            "This machine has 2 cores, so two processes share the cores one process would use; the comparison "
+            "shows the cost of the data-parallel machinery (gradient all-reduce, synchronised BatchNorm), not a "
+            "multi-GPU speed-up. " + _describe_load(load),
+        ]
+    )
+    _record(args, "train-ddp", "Data-parallel training on the CPU: torchrun with 2 gloo processes vs 1", body)
+
+
+def run_gpu(args: argparse.Namespace) -> None:
+    """The "train-gpu" part: images/s on one GPU, fp32 against mixed precision, and the data-wait share."""
+    if not torch.cuda.is_available():
+        raise SystemExit("the gpu part needs a CUDA GPU; this machine has none")
+    data = benchmark_dataset(2, 8, workers=min(8, os.cpu_count() or 1))
+    archs = [DEFAULT_ARCH, BASELINE_ARCH]
+    precisions = ["fp32", "auto"]
+    warm_up = 5
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for arch in archs:
+            for precision in precisions:
+                config = TrainConfig(
+                    method="supervised-edge", data=str(data), out=str(Path(tmp) / f"{arch}-{precision}"), arch=arch,
+                    steps=warm_up, batch_size=args.gpu_batch_size, crop_size=None, device="cuda",
+                    precision=precision, workers=args.gpu_workers, checkpoint_every=10**6,
+                )  # fmt: skip
+                # The first session warms up (cuDNN autotuning, allocator); the resumed one is timed.
+                first = train(config, progress=False)
+                second = train(replace(config, steps=warm_up + args.gpu_steps), resume=True, progress=False)
+                assert first.seconds is not None and second.seconds is not None
+                rate = args.gpu_batch_size * args.gpu_steps / (second.seconds - first.seconds)
+                wait = second.data_wait_fraction or 0.0
+                dtype = "fp32" if precision == "fp32" else ("bf16" if torch.cuda.is_bf16_supported() else "fp16")
+                rows.append((arch, dtype, rate, wait))
+    fp32 = {arch: rate for arch, dtype, rate, _ in rows if dtype == "fp32"}
+    table = [
+        f"| `{arch}` | {dtype} | {rate:.1f} | {rate / fp32[arch]:.2f}x | {100 * wait:.1f}% "
+        f"| {'yes' if wait < GPU_WAIT_TARGET else 'NO'} |"
+        for arch, dtype, rate, wait in rows
+    ]
+    body = "\n".join(
+        [
+            f"`train()` with supervised-edge targets on whole {FRAME_SIZE[0]}x{FRAME_SIZE[1]} frames, batch "
+            f"{args.gpu_batch_size}, {args.gpu_workers} data workers, 1 process on {torch.cuda.get_device_name(0)}; "
+            f"{args.gpu_steps} timed steps after {warm_up} warm-up steps. Baseline: fp32 on the same GPU.",
+            "",
+            f"| network | precision | training images/s | vs fp32 | step time waiting for data "
+            f"| < {100 * GPU_WAIT_TARGET:.0f}% |",
+            "|---|---|---|---|---|---|",
+            *table,
+        ]
+    )
+    _record(args, "train-gpu", "DON training on a GPU: fp32 vs mixed precision", body)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    runners = {"speed": run_speed, "loader": run_loader, "ddp": run_ddp, "gpu": run_gpu}
+    for part in args.parts:
+        print(f"--- {part}", flush=True)
+        runners[part](args)
     return 0
 
 

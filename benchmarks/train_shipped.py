@@ -1,17 +1,18 @@
 """Reproduce the networks shipped in don_gym/shipped from scratch, and record the run.
 
-For each object (toolcap, shaft): build a dataset (scenes x frames at 640x480 with the d435
-sensor preset, seed 0), then train one network per method (supervised-edge,
-supervised-mask, self-supervised; resnet-lite, 128x128 object-centred crops, fixed seed)
-and copy its final weights to ``don_gym/shipped/<object>/<method>.safetensors``.
-
-640x480 rather than 320x240: at the env's observation pose (0.45 m above the table) the
-toolcap spans about 30 px at 320x240, four cells of the network's output stride 8, too few
-to tell its flange end from its open end; at 640x480 it spans about 60 px.
-Records, per network, the training time, images/s and final loss in benchmarks/RESULTS.md.
+For each object (toolcap, shaft): build a dataset (640x480, d435 sensor, seed 0), train one network per
+method (resnet-lite, 128x128 object-centred crops, fixed seed), copy its final weights to
+``don_gym/shipped/<object>/<method>.safetensors`` and record its training time, images/s and final loss
+in benchmarks/RESULTS.md.
 
     python benchmarks/train_shipped.py            # the shipped recipe
     python benchmarks/train_shipped.py --quick    # a smoke run into a temp dir (no copy)
+    python benchmarks/train_shipped.py --restamp --work runs/shipped   # no training: add the part identity
+
+Every copied network carries the identity of its part and its descriptor field (docs/reliability.md, "Part
+identity"). ``--restamp`` adds them in place to shipped networks saved without them (weights untouched),
+with the field from ``<work>/data_<object>/descriptor_field.npz`` when that has the recorded hash, else
+computed here and checked against it; networks that have them are left as they are.
 """
 
 from __future__ import annotations
@@ -25,9 +26,14 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import record_section  # noqa: E402
+from check_shipped import record_regenerated  # noqa: E402
 
 from don_gym.build import DatasetConfig, build_dataset  # noqa: E402
+from don_gym.checkpoints import restamp_checkpoint  # noqa: E402
 from don_gym.cli import parse_size  # noqa: E402
+from don_gym.dataset import FIELD_FILE  # noqa: E402
+from don_gym.descriptors import DescriptorField  # noqa: E402
+from don_gym.objects import load_object  # noqa: E402
 from don_gym.train import TrainConfig, train  # noqa: E402
 from don_gym.zoo import SHIPPED_DIR  # noqa: E402
 
@@ -35,11 +41,23 @@ OBJECTS = ("toolcap", "shaft")
 METHODS = ("supervised-edge", "supervised-mask", "self-supervised")
 
 
+def restamp_shipped(object_name: str, method: str, data: Path) -> None:
+    """Give ``don_gym/shipped/<object>/<method>.safetensors`` its part identity and descriptor field, the field
+    from the run's dataset ``data`` when it has the recorded one; idempotent."""
+    target = SHIPPED_DIR / object_name / f"{method}.safetensors"
+    candidates = [DescriptorField.load(data / FIELD_FILE)] if (data / FIELD_FILE).is_file() else []
+    _, done = restamp_checkpoint(target, load_object(object_name), candidates)
+    print(f"{object_name}/{method}: {done}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--work", default="runs/shipped", help="directory for datasets and runs")
     parser.add_argument("--scenes", type=int, default=16)
     parser.add_argument("--frames", type=int, default=24)
+    # 640x480 rather than 320x240: at the env's observation pose (0.45 m above the table) the toolcap spans
+    # about 30 px at 320x240, four cells of the network's output stride 8, too few to tell its flange end
+    # from its open end; at 640x480 it spans about 60 px.
     parser.add_argument("--size", type=parse_size, default=(640, 480), help="image WIDTHxHEIGHT (default 640x480)")
     parser.add_argument("--crop", type=parse_size, default=(128, 128), help="training crop WIDTHxHEIGHT")
     parser.add_argument("--steps", type=int, default=6000)
@@ -48,11 +66,21 @@ def main() -> None:
     parser.add_argument("--objects", nargs="+", default=list(OBJECTS))
     parser.add_argument("--methods", nargs="+", default=list(METHODS))
     parser.add_argument("--quick", action="store_true", help="tiny smoke run in a temp dir; copies nothing")
+    parser.add_argument(
+        "--restamp", action="store_true", help="no training: add the part identity to the shipped networks in place"
+    )
     args = parser.parse_args()
+    if args.restamp:
+        for object_name in args.objects:
+            for method in args.methods:
+                if (SHIPPED_DIR / object_name / f"{method}.safetensors").is_file():
+                    restamp_shipped(object_name, method, Path(args.work) / f"data_{object_name}")
+        return
     work = Path(tempfile.mkdtemp(prefix="don_gym_shipped_")) if args.quick else Path(args.work)
     if args.quick:
         args.scenes, args.frames, args.steps = 2, 6, 20
     rows = []
+    shipped = []
     for object_name in args.objects:
         data = work / f"data_{object_name}"
         config = DatasetConfig(
@@ -89,6 +117,8 @@ def main() -> None:
                 target.parent.mkdir(parents=True, exist_ok=True)
                 shutil.copyfile(result.model_path, target)
                 print(f"shipped {target}")
+                restamp_shipped(object_name, method, data)
+                shipped.append(f"{object_name}/{method}")
     width, height = args.size
     crop_w, crop_h = args.crop
     body = f"""Datasets: {args.scenes} scenes x {args.frames} frames, {width}x{height}, sensor `d435`, TinyRenderer,
@@ -105,6 +135,9 @@ session of a resumed run; n/a marks a run resumed from a state saved before don_
     if not args.quick:
         name = "-".join(args.objects)
         record_section(f"shipped-{name}", f"Shipped networks: {', '.join(args.objects)} (train_shipped.py)", body)
+    if shipped:
+        # The manifest of tests/test_shipped_fresh.py: these networks are made with the current sources.
+        record_regenerated(shipped)
 
 
 if __name__ == "__main__":

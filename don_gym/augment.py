@@ -1,18 +1,8 @@
 """Training-time image augmentation that never moves a pixel, so targets and correspondences stay valid.
 
-- :func:`randomize_background`: the original DON's background randomisation: with
-  probability ``p`` (0.5) per image, every pixel outside the object mask is replaced by a
-  random colour, a random linear colour gradient or random noise (at a random cell size,
-  from per-pixel speckle to smooth blobs). Object pixels are left bit-identical.
-- :func:`photometric_jitter`: per-image brightness, contrast, saturation and hue
-  (a rotation of the chroma plane in YIQ space) changes plus small Gaussian pixel noise.
-- :func:`augment`: both, background first, so the new background is jittered like the
-  rest of the image.
-
-All functions take batched float RGB ``(B, 3, H, W)`` in [0, 1] and a ``torch.Generator``:
-the same generator state gives the same output. Random numbers are drawn on the
-generator's device and moved to the images' device, so a CPU generator also serves CUDA
-images (bit-identical results across devices are not promised).
+:func:`augment` applies :func:`randomize_background` (the original DON's, docs/background.md, section
+"Self-supervised DON training") and :func:`photometric_jitter` to batched float RGB ``(B, 3, H, W)`` in
+[0, 1]; the same ``torch.Generator`` state gives the same output.
 """
 
 from __future__ import annotations
@@ -88,7 +78,8 @@ def _random_index(batch: int, count: int, generator: torch.Generator | None, lik
 def random_backgrounds(
     batch: int, height: int, width: int, generator: torch.Generator | None, like: torch.Tensor
 ) -> torch.Tensor:
-    """``(batch, 3, H, W)`` random backgrounds in [0, 1], each a colour, a gradient or noise."""
+    """``(batch, 3, H, W)`` random backgrounds in [0, 1], each a colour, a random linear colour gradient
+    or noise (uniform colours on a grid of a random cell size, from per-pixel speckle to smooth blobs)."""
     kind = _random_index(batch, len(BACKGROUND_KINDS), generator, like)
     colour_a = _uniform((batch, 3, 1, 1), 0.0, 1.0, generator, like)
     colour_b = _uniform((batch, 3, 1, 1), 0.0, 1.0, generator, like)
@@ -145,7 +136,10 @@ def randomize_background(
 def photometric_jitter(
     rgb: torch.Tensor, generator: torch.Generator | None = None, config: AugmentConfig = AugmentConfig()
 ) -> torch.Tensor:
-    """Per-image brightness, contrast, saturation, hue and pixel-noise jitter; output clamped to [0, 1]."""
+    """Per-image brightness, contrast, saturation, hue and pixel-noise jitter; output clamped to [0, 1].
+
+    Hue is a rotation of the chroma plane in YIQ space; the pixel noise is Gaussian.
+    """
     _check_rgb(rgb)
     batch = rgb.shape[0]
     out = rgb * _uniform((batch, 1, 1, 1), 1.0 - config.brightness, 1.0 + config.brightness, generator, rgb)
@@ -179,6 +173,11 @@ def augment(
     generator: torch.Generator | None = None,
     config: AugmentConfig = AugmentConfig(),
 ) -> torch.Tensor:
-    """Background randomisation then photometric jitter: ``(B, 3, H, W)`` in, same shape out."""
+    """Background randomisation then photometric jitter: ``(B, 3, H, W)`` in, same shape out.
+
+    The background goes first, so the new background is jittered like the rest of the image.
+    Random numbers are drawn on the generator's device and moved to the images' device, so a CPU
+    generator also serves CUDA images (bit-identical results across devices are not promised).
+    """
     out = randomize_background(rgb, object_mask, generator, config.background_probability)
     return photometric_jitter(out, generator, config)

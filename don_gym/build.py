@@ -1,25 +1,21 @@
 """Dataset builder: record scenes in simulation and write the targets of both methods.
 
-One scene = the object at one pose on the table, seen by the wrist camera from
-``frames_per_scene`` quasi-random poses (:mod:`don_gym.sim.recorder`). For each scene the
-builder writes, per frame, RGB, sensor and ideal depth, the simulator's object mask, the
-supervised descriptor target rendered from the *reported* camera pose (as a real user
-would have it) and, for the self-supervised method, the sensor depth fused over the
-scene (TSDF) and re-rendered per frame with object masks from the fused model.
-
-Work is split by scene: ``shard=(i, n)`` takes scenes ``i, i+n, i+2n, ...`` (for a job
-array), ``workers`` processes each own one PyBullet client, finished scenes are skipped
-(resumable) and every file is written atomically (see :mod:`don_gym.dataset`).
+:func:`build_dataset` records scenes of one object (:mod:`don_gym.sim.recorder`) and writes them in the
+format of :mod:`don_gym.dataset`, resumably, split over worker processes or shards.
 """
 
 from __future__ import annotations
 
 import contextlib
+import math
 import multiprocessing as mp
 import os
 import shutil
 import time
+import warnings
 from collections.abc import Iterator
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -33,17 +29,25 @@ from don_gym.dataset import (
     FIELD_FILE,
     FORMAT_NAME,
     FORMAT_VERSION,
+    LOCK_FILE,
     SCENE_FILE,
+    DatasetLock,
     check_dataset_identity,
+    check_dataset_info,
+    new_scene_tmp_dir,
+    publish_scene,
     read_json,
+    remove_stale_scene_dirs,
     scene_dir,
+    scene_is_complete,
     write_frame,
     write_json,
 )
 from don_gym.descriptors import DescriptorField, embed
-from don_gym.errors import DatasetError
+from don_gym.errors import DatasetError, DonGymError
 from don_gym.fusion import fuse_scene, fused_object_masks
 from don_gym.geometry import invert_transform
+from don_gym.io import atomic_path
 from don_gym.objects import ObjectModel, load_object
 from don_gym.render import DescriptorRenderer
 
@@ -72,21 +76,63 @@ class DatasetConfig:
     voxel_size_m: float = 0.002
 
     def validate(self) -> None:
-        if self.scenes < 1 or self.frames_per_scene < 2:
-            raise DatasetError(
-                f"need at least 1 scene and 2 frames per scene, got {self.scenes} x {self.frames_per_scene}"
-            )
-        width, height = self.image_size
+        """DatasetError naming the first unusable setting: all that needs neither the mesh, the disk nor
+        PyBullet (``renderer``: :func:`prepare_dataset_dir`)."""
+        from don_gym.sim.sensor import get_sensor
+
+        if not isinstance(self.object, str) or not self.object:
+            raise DatasetError(f"object={self.object!r} (--object): expected a built-in name or a mesh file")
+        _check_int("scenes", self.scenes, "--scenes", minimum=1)
+        _check_int("frames_per_scene", self.frames_per_scene, "--frames", minimum=2)
+        _check_int("seed", self.seed, "--seed", minimum=0)
+        _check_int("descriptor_dim", self.descriptor_dim, "--dim", minimum=1)
+        size = self.image_size
+        if not (isinstance(size, (tuple, list)) and len(size) == 2 and all(_is_int(v) for v in size)):
+            raise DatasetError(f"image_size={size!r} (--size): expected (width, height) in pixels")
+        width, height = size
         if not (16 <= width <= 1280 and 16 <= height <= 960):
-            raise DatasetError(f"image size {width}x{height} is out of range; expected 16x16 to 1280x960")
+            raise DatasetError(f"image size {width}x{height} (--size) is out of range; expected 16x16 to 1280x960")
+        if not isinstance(self.sensor, str):
+            raise DatasetError(f"sensor={self.sensor!r} (--sensor): expected a preset name")
+        get_sensor(self.sensor)
+        for name, value in (("symmetric", self.symmetric), ("fuse_depth", self.fuse_depth)):
+            if not isinstance(value, bool):
+                raise DatasetError(f"{name}={value!r}: expected True or False")
+        if not (_is_number(self.voxel_size_m) and 0 < self.voxel_size_m < 0.1):
+            raise DatasetError(f"voxel_size_m={self.voxel_size_m!r}: expected a voxel edge in metres, in (0, 0.1)")
+        scale = self.object_scale
+        if scale is not None and not (_is_number(scale) and scale > 0):
+            raise DatasetError(f"object_scale={scale!r} (--object-scale): expected a positive, finite factor")
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return (
+        isinstance(value, (int, float, np.integer, np.floating))
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+    )
+
+
+def _check_int(name: str, value: Any, option: str, minimum: int) -> None:
+    if not _is_int(value) or value < minimum:
+        raise DatasetError(f"{name}={value!r} ({option}): expected an integer >= {minimum}")
 
 
 @dataclass(frozen=True)
 class BuildReport:
+    """What one call wrote (``scenes_skipped``: already complete, or finished first by another writer)
+    and, after it, how many of the dataset's ``scenes_total`` scenes are complete (all shards)."""
+
     scenes_written: int
     scenes_skipped: int
     frames_written: int
     seconds: float
+    scenes_complete: int = 0
+    scenes_total: int = 0
 
     @property
     def frames_per_second(self) -> float:
@@ -104,12 +150,25 @@ def parse_shard(text: str) -> tuple[int, int]:
     return index, count
 
 
+def _check_run_options(workers: Any, shard: Any) -> tuple[int, int]:
+    if not _is_int(workers) or workers < 1:
+        raise DatasetError(f"workers={workers!r} (--workers): expected an integer >= 1")
+    if not (isinstance(shard, (tuple, list)) and len(shard) == 2 and all(_is_int(v) for v in shard)):
+        raise DatasetError(f"shard={shard!r} (--shard): expected (i, n) with 0 <= i < n")
+    index, count = (int(v) for v in shard)
+    if not (count >= 1 and 0 <= index < count):
+        raise DatasetError(f"shard={shard!r} (--shard): expected (i, n) with 0 <= i < n")
+    return index, count
+
+
 def _dataset_info(config: DatasetConfig, model: ObjectModel, field: DescriptorField) -> dict[str, Any]:
     return {
         "format": FORMAT_NAME,
         "version": FORMAT_VERSION,
         "don_gym_version": __version__,
         **asdict(config),
+        "object_name": model.name,
+        "object_signature": model.shape_signature.to_dict(),
         "object_source": model.source,
         "mesh_hash": model.mesh_hash,
         "descriptor_field_hash": field.field_hash,
@@ -117,35 +176,165 @@ def _dataset_info(config: DatasetConfig, model: ObjectModel, field: DescriptorFi
     }
 
 
-def prepare_dataset_dir(out_dir: Path, config: DatasetConfig, overwrite: bool) -> tuple[ObjectModel, DescriptorField]:
-    """Create or validate ``out_dir``; returns the object and its descriptor field.
+def _check_not_foreign(out_dir: Path) -> None:
+    """Refuse a directory holding anything but the start of a dataset (a crashed or concurrent build's
+    descriptor field, lock file or temporary files): building would mix our files with someone's."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise DatasetError(f"{out_dir}: exists and is not a directory; expected a dataset directory")
+    if not out_dir.is_dir():
+        return
+    ours = (LOCK_FILE, FIELD_FILE, f".{FIELD_FILE}.partial-", f".{DATASET_FILE}.partial-")
+    foreign = sorted(p.name for p in out_dir.iterdir() if not any(p.name.startswith(o) for o in ours))
+    if foreign:
+        raise DatasetError(
+            f"{out_dir}: exists and is not a don_gym dataset (holds {foreign[0]!r}); "
+            "use an empty directory or --overwrite"
+        )
 
-    Refuses a directory holding a different dataset (or anything else that is not
-    empty) unless ``overwrite``, which deletes it first.
+
+def _recorded_scenes(recorded: dict[str, Any], out_dir: Path) -> int:
+    scenes = recorded.get("scenes")
+    if not _is_int(scenes) or scenes < 1:
+        raise DatasetError(f"{out_dir / DATASET_FILE}: scenes {scenes!r} is not an integer >= 1; the file is corrupt")
+    return int(scenes)
+
+
+def _resolve_dataset(
+    out_dir: Path, config: DatasetConfig, model: ObjectModel, field: DescriptorField | None, write: bool
+) -> DescriptorField:
+    """Check ``out_dir``'s dataset-level files against ``config`` and return the descriptor field to
+    render targets with (the recorded one when there is one); with ``write``, publish what is missing.
+
+    The one place where a build decides whether it may write into ``out_dir``: called read-only to
+    validate before anything is written, then again holding the metadata lock. Files are published
+    with an exclusive create, so writers on several machines that race agree on one ``dataset.json``
+    and one ``descriptor_field.npz``; a writer whose options differ from them is refused.
+    """
+    info_path, field_path = out_dir / DATASET_FILE, out_dir / FIELD_FILE
+    for _ in range(3):  # another writer may publish a file between our look and our write
+        recorded = check_dataset_info(read_json(info_path), info_path) if info_path.is_file() else None
+        if recorded is None:
+            _check_not_foreign(out_dir)
+        if field_path.is_file():
+            field = _load_field(field_path)
+            if recorded is None:
+                _check_field_fits(field, model, config, out_dir)
+        elif field is None:
+            field = embed(model, dim=config.descriptor_dim, symmetric=config.symmetric)
+        wanted = _dataset_info(config, model, field)
+        if recorded is not None:
+            check_dataset_identity(recorded, wanted, out_dir)
+            scenes = _recorded_scenes(recorded, out_dir)
+            if config.scenes < scenes:
+                raise DatasetError(
+                    f"{out_dir}: records {scenes} scenes and scenes={config.scenes} (--scenes) asks for fewer; "
+                    f"scenes are never removed: pass --scenes {scenes} (or more, to add scenes), --overwrite "
+                    "to start again, or use another directory"
+                )
+        if not write:
+            return field
+        try:
+            if not field_path.is_file():
+                with atomic_path(field_path, exclusive=True) as tmp:
+                    field.save(tmp)
+            if recorded is None:
+                write_json(info_path, wanted, exclusive=True)
+            elif config.scenes > _recorded_scenes(recorded, out_dir):
+                write_json(info_path, {**recorded, "scenes": config.scenes})
+        except FileExistsError:
+            continue
+        return field
+    raise DatasetError(f"{out_dir}: its dataset.json keeps changing while this build starts; try again")
+
+
+def _load_field(path: Path) -> DescriptorField:
+    try:
+        return DescriptorField.load(path)
+    except DonGymError as exc:
+        raise DatasetError(f"{exc}; pass --overwrite to rebuild the dataset or use another directory") from exc
+
+
+def _check_field_fits(field: DescriptorField, model: ObjectModel, config: DatasetConfig, out_dir: Path) -> None:
+    """A descriptor field without ``dataset.json`` (a build that stopped between the two, or one
+    starting right now): usable only if it is the field these options would compute."""
+    found = (field.mesh_hash, field.dim, field.symmetric)
+    if found != (model.mesh_hash, config.descriptor_dim, config.symmetric):
+        raise DatasetError(
+            f"{out_dir / FIELD_FILE}: holds the descriptor field of another dataset (mesh {field.mesh_hash}, "
+            f"dim {field.dim}, symmetric {field.symmetric}; asked: mesh {model.mesh_hash} of {config.object!r}, "
+            f"dim {config.descriptor_dim}, symmetric {config.symmetric}) and no {DATASET_FILE}: another build is "
+            "starting there or stopped early; pass --overwrite to replace it or use another directory"
+        )
+
+
+def _check_renderer_available(renderer: str) -> None:
+    """A known renderer, and one this machine has: PyBullet falls back from EGL to TinyRenderer with
+    a warning, and a dataset must not record one renderer and hold the other's pixels."""
+    from don_gym.sim.bullet import Bullet
+    from don_gym.sim.camera import check_renderer
+
+    if check_renderer(renderer) == "tiny":
+        return
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        sim = Bullet(renderer=renderer)
+    try:
+        _check_renderer_in_use(sim.renderer, renderer)
+    finally:
+        sim.close()
+
+
+def _check_renderer_in_use(in_use: str, wanted: str) -> None:
+    if in_use != wanted:
+        raise DatasetError(
+            f"renderer={wanted!r} (--renderer) is unavailable on this machine (PyBullet would use {in_use!r}); "
+            "build on a machine with EGL or pass --renderer tiny"
+        )
+
+
+def _clear_dir(out_dir: Path) -> None:
+    """Everything but the lock file, which other writers must keep finding at the same inode."""
+    for path in out_dir.iterdir():
+        if path.name == LOCK_FILE:
+            continue
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        else:
+            path.unlink()
+
+
+def prepare_dataset_dir(
+    out_dir: Path, config: DatasetConfig, overwrite: bool
+) -> tuple[ObjectModel, DescriptorField, DatasetLock]:
+    """Validate everything, then create, replace (``overwrite``) or join the dataset in ``out_dir``.
+
+    Nothing is written before all options, the object and (if there is one) the recorded dataset
+    have been checked: a refused build leaves ``out_dir`` as it was. Returns the object, its
+    descriptor field and the lock, held shared (the caller closes it when done).
     """
     config.validate()
     model = load_object(config.object, scale=config.object_scale)
-    info_path = out_dir / DATASET_FILE
-    if out_dir.exists() and overwrite:
-        shutil.rmtree(out_dir)
-    field_path = out_dir / FIELD_FILE
-    if info_path.is_file():
-        existing = read_json(info_path)
-        field = (
-            DescriptorField.load(field_path)
-            if field_path.is_file()
-            else embed(model, dim=config.descriptor_dim, symmetric=config.symmetric)
-        )
-        check_dataset_identity(existing, _dataset_info(config, model, field), out_dir)
-    else:
-        if out_dir.exists() and any(out_dir.iterdir()):
-            raise DatasetError(f"{out_dir}: exists and is not a don_gym dataset; use an empty directory or --overwrite")
+    if overwrite:
+        if out_dir.exists() and not out_dir.is_dir():
+            raise DatasetError(f"{out_dir}: exists and is not a directory; expected a dataset directory")
         field = embed(model, dim=config.descriptor_dim, symmetric=config.symmetric)
-        out_dir.mkdir(parents=True, exist_ok=True)
-    if not field_path.is_file():
-        field.save(field_path)
-    write_json(info_path, _dataset_info(config, model, field))
-    return model, field
+    else:
+        field = _resolve_dataset(out_dir, config, model, None, write=False)
+    _check_renderer_available(config.renderer)
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    lock = DatasetLock(out_dir)
+    try:
+        lock.hold_session(exclusive=overwrite)
+        if overwrite:
+            _clear_dir(out_dir)
+            lock.share_session()
+        with lock.metadata():
+            field = _resolve_dataset(out_dir, config, model, field, write=True)
+    except BaseException:
+        lock.close()
+        raise
+    return model, field, lock
 
 
 def scene_seed(seed: int, scene_index: int) -> int:
@@ -154,21 +343,52 @@ def scene_seed(seed: int, scene_index: int) -> int:
 
 
 class SceneWriter:
-    """Records and writes scenes; one per worker process (owns one PyBullet client)."""
+    """Records and writes scenes; one per worker process (owns one PyBullet client).
 
-    def __init__(self, config: DatasetConfig, out_dir: Path, field: DescriptorField) -> None:
+    One scene = the object at one pose on the table, seen by the wrist camera from
+    ``frames_per_scene`` quasi-random poses. Per frame the writer stores RGB, sensor and ideal
+    depth, the simulator's object mask, the supervised descriptor target rendered from the
+    *reported* camera pose (as a real user would have it) and, for the self-supervised method
+    (``fuse_depth``), the sensor depth fused over the scene (TSDF) and re-rendered per frame
+    with object masks from the fused model.
+    """
+
+    def __init__(self, config: DatasetConfig, out_dir: Path, field: DescriptorField, lock: DatasetLock) -> None:
         from don_gym.sim.recorder import SceneRecorder
 
         self.config = config
         self.out_dir = out_dir
+        self.lock = lock
         self.model = load_object(config.object, scale=config.object_scale)
         self.field = field
-        self.recorder = SceneRecorder(self.model, config.image_size, sensor=config.sensor, renderer=config.renderer)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # an EGL fallback is refused just below
+            self.recorder = SceneRecorder(self.model, config.image_size, sensor=config.sensor, renderer=config.renderer)
+        try:
+            _check_renderer_in_use(self.recorder.renderer, config.renderer)
+        except DatasetError:
+            self.recorder.close()
+            raise
         self.renderer = DescriptorRenderer(self.model.mesh, field.vertex_descriptors, field.background)
 
     def write_scene(self, scene_index: int) -> int:
+        """Record scene ``scene_index`` into a temporary directory and rename it into place; returns the
+        frames written, 0 if the scene was complete already or another writer completed it first."""
+        final = scene_dir(self.out_dir, scene_index)
+        with self.lock.scene(scene_index):
+            if scene_is_complete(final):
+                return 0
+            remove_stale_scene_dirs(self.out_dir, scene_index)
+            tmp = new_scene_tmp_dir(self.out_dir, scene_index)
+            try:
+                frames = self._record(tmp, scene_index)
+                return frames if publish_scene(tmp, final) else 0
+            finally:
+                if tmp.exists():
+                    shutil.rmtree(tmp, ignore_errors=True)
+
+    def _record(self, path: Path, scene_index: int) -> int:
         config = self.config
-        path = scene_dir(self.out_dir, scene_index)
         seed = scene_seed(config.seed, scene_index)
         scene = self.recorder.record(seed=seed, num_frames=config.frames_per_scene)
         intrinsics = scene.intrinsics
@@ -260,7 +480,10 @@ def single_threaded_children() -> Iterator[None]:
 
 def _worker_init(config: DatasetConfig, out_dir: str, field_path: str) -> None:
     global _WORKER  # one writer per worker process, created once
-    _WORKER = SceneWriter(config, Path(out_dir), DescriptorField.load(field_path))
+    lock = DatasetLock(Path(out_dir))
+    # Joins the writers, so that an --overwrite never deletes under a worker that outlives its parent.
+    lock.hold_session()
+    _WORKER = SceneWriter(config, Path(out_dir), DescriptorField.load(field_path), lock)
 
 
 def _worker_write(scene_index: int) -> int:
@@ -276,48 +499,79 @@ def build_dataset(
     overwrite: bool = False,
     progress: bool = True,
 ) -> BuildReport:
-    """Build (or resume) a dataset; see the module docstring. Returns counts and timing."""
+    """Build (or resume) a dataset (what a scene holds: :class:`SceneWriter`). Returns counts and timing.
+
+    Work is split by scene: ``shard=(i, n)`` takes scenes ``i, i+n, i+2n, ...`` (for a job array),
+    ``workers`` processes each own one PyBullet client, finished scenes are skipped (resumable)
+    and every file is written atomically. Several processes, on one machine or several sharing the
+    directory, may build the same dataset at once (shards, or a final unsharded run that checks
+    and completes); one with other options is refused (see :func:`prepare_dataset_dir`).
+    """
     out_dir = Path(out_dir)
     start = time.perf_counter()
-    _, field = prepare_dataset_dir(out_dir, config, overwrite)
-    shard_index, shard_count = shard
-    todo, skipped = [], 0
-    for i in range(shard_index, config.scenes, shard_count):
-        if (scene_dir(out_dir, i) / SCENE_FILE).is_file():
-            skipped += 1
-        else:
-            todo.append(i)
-    frames = 0
-    bar = tqdm(total=len(todo) * config.frames_per_scene, unit="frame", desc="build-dataset", disable=not progress)
+    shard_index, shard_count = _check_run_options(workers, shard)
+    _, field, lock = prepare_dataset_dir(out_dir, config, overwrite)
     try:
-        if workers <= 1 or len(todo) <= 1:
-            writer = SceneWriter(config, out_dir, field)
-            try:
-                for i in todo:
-                    n = writer.write_scene(i)
-                    frames += n
-                    bar.update(n)
-            finally:
-                writer.close()
-        else:
-            context = mp.get_context("spawn")
-            # One BLAS/OpenMP thread per worker: the workers already fill the cores, and
-            # oversubscription makes a 2-worker build slower than a 1-worker one.
-            with (
-                single_threaded_children(),
-                context.Pool(
-                    min(workers, len(todo)),
-                    initializer=_worker_init,
-                    initargs=(config, str(out_dir), str(out_dir / FIELD_FILE)),
-                ) as pool,
-            ):
-                for n in pool.imap_unordered(_worker_write, todo):
-                    frames += n
-                    bar.update(n)
-                # A clean shutdown: the with-block alone terminates the workers, which leaves the
-                # pool's semaphores to the resource tracker's "leaked semaphore" warning.
-                pool.close()
-                pool.join()
+        todo, skipped = [], 0
+        for i in range(shard_index, config.scenes, shard_count):
+            if scene_is_complete(scene_dir(out_dir, i)):
+                skipped += 1
+            else:
+                todo.append(i)
+        written, frames = 0, 0
+        bar = tqdm(total=len(todo) * config.frames_per_scene, unit="frame", desc="build-dataset", disable=not progress)
+        try:
+            if workers <= 1 or len(todo) <= 1:
+                results = _write_in_process(config, out_dir, field, lock, todo)
+            else:
+                results = _write_in_workers(config, out_dir, min(workers, len(todo)), todo)
+            with contextlib.closing(results):  # on an error, stop the workers before returning
+                for n in results:
+                    written, frames, skipped = written + (n > 0), frames + n, skipped + (n == 0)
+                    bar.update(n if n > 0 else config.frames_per_scene)
+        finally:
+            bar.close()
     finally:
-        bar.close()
-    return BuildReport(len(todo), skipped, frames, time.perf_counter() - start)
+        lock.close()
+    complete = sum(scene_is_complete(scene_dir(out_dir, i)) for i in range(config.scenes))
+    return BuildReport(written, skipped, frames, time.perf_counter() - start, complete, config.scenes)
+
+
+def _write_in_process(
+    config: DatasetConfig, out_dir: Path, field: DescriptorField, lock: DatasetLock, todo: list[int]
+) -> Iterator[int]:
+    if not todo:
+        return
+    writer = SceneWriter(config, out_dir, field, lock)
+    try:
+        for i in todo:
+            yield writer.write_scene(i)
+    finally:
+        writer.close()
+
+
+def _write_in_workers(config: DatasetConfig, out_dir: Path, workers: int, todo: list[int]) -> Iterator[int]:
+    context = mp.get_context("spawn")
+    # One BLAS/OpenMP thread per worker: the workers already fill the cores, and
+    # oversubscription makes a 2-worker build slower than a 1-worker one.
+    with single_threaded_children():
+        pool = ProcessPoolExecutor(
+            workers,
+            mp_context=context,
+            initializer=_worker_init,
+            initargs=(config, str(out_dir), str(out_dir / FIELD_FILE)),
+        )
+    try:
+        pending = {pool.submit(_worker_write, i) for i in todo}
+        while pending:
+            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for future in done:
+                yield future.result()
+    except BrokenProcessPool:
+        raise DatasetError(
+            f"{out_dir}: a worker process died while writing scenes (killed, or out of memory?); finished "
+            "scenes are kept: run the same command again to resume"
+        ) from None
+    finally:
+        # Waits for the workers to exit: no process outlives the build, and no leaked-semaphore warning.
+        pool.shutdown(wait=True, cancel_futures=True)

@@ -1,19 +1,10 @@
 """DON checkpoints: safetensors weights plus JSON metadata that says what the network was trained for.
 
-A checkpoint is one ``.safetensors`` file. Its weights are the model's state dict
-(float32 by default, float16 on request: :data:`WEIGHT_DTYPES`); its safetensors metadata
-holds one key, ``"don_gym"``, whose value is the JSON of :class:`CheckpointMetadata`:
-method, descriptor dimension, arch, training image size, object and mesh hash,
-descriptor-field hash, input normalisation, renderer, sensor preset, training steps, the
-don_gym version and the format version, and a SHA-256 of the weights. safetensors never
-executes code on load (unlike a pickled ``.pth``), and the hash catches corruption that
-leaves the file size intact.
-
-:func:`load_checkpoint` rebuilds the :class:`~don_gym.model.DenseObjectNet` and checks
-the metadata against what the caller needs; every mismatch, a missing, truncated or
-corrupt file, or a safetensors file that is not a don_gym checkpoint raises a
-:class:`~don_gym.errors.CheckpointError` naming the file, the field, the value found and
-the value expected.
+:func:`save_checkpoint` writes one ``.safetensors`` file; :func:`load_checkpoint` rebuilds the
+:class:`~don_gym.model.DenseObjectNet` and checks the metadata (:class:`CheckpointMetadata`) against what
+the caller needs, raising :class:`~don_gym.errors.CheckpointError` on any mismatch or damaged file.
+A checkpoint also carries the identity of the part it was trained on (:class:`PartIdentity`), which
+:func:`restamp_checkpoint` adds to one saved without it (docs/reliability.md, "Part identity").
 """
 
 from __future__ import annotations
@@ -21,22 +12,37 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
-from don_gym.errors import CheckpointError, DonGymError
+from don_gym.descriptors import FIELD_MATCH_ATOL, DescriptorField, embed, mesh_content_hash
+from don_gym.errors import CheckpointError, DonGymError, MeshError
 from don_gym.io import atomic_path
-from don_gym.methods import METHODS
+from don_gym.methods import METHODS, is_supervised
 from don_gym.model import ARCHS, IMAGENET_MEAN, IMAGENET_STD, DenseObjectNet
+from don_gym.objects import ObjectModel, ShapeSignature, part_name
 
 #: Version of the checkpoint layout; bumped when a reader of the old layout would misread a new file.
-FORMAT_VERSION = 1
+#: 2: the part identity's tensors (:data:`PART_TENSORS`, :data:`FIELD_TENSORS`) beside the weights.
+FORMAT_VERSION = 2
 METADATA_KEY = "don_gym"
 WEIGHT_DTYPES = {"float32": torch.float32, "float16": torch.float16}
+#: Tensors of the trained part's mesh, and of the descriptor field its targets came from (supervised methods).
+PART_TENSORS = ("part.vertices_m", "part.faces")
+FIELD_TENSORS = ("field.vertex_descriptors", "field.eigenvalues", "field.background")
+#: A part's vertex is the trained part's when within this distance (m) of it: covers a mesh re-exported in
+#: single precision (STL), far below any feature of a part a Panda picks.
+VERTEX_MATCH_ATOL_M = 1e-6
+#: What to do about a network whose field cannot serve a part, for the messages that refuse it.
+FIELD_ADVICE = (
+    "retrain on this part, or pass reference descriptors explicitly "
+    "(KeypointObservation(reference_descriptors=...) or AxisGraspAgent.from_parts)"
+)
 
 
 @dataclass(frozen=True)
@@ -45,11 +51,12 @@ class CheckpointMetadata:
 
     Attributes:
         method: one of :data:`don_gym.methods.METHODS`.
-        object_name: the object the network describes (``ObjectModel.name``).
-        object_mesh_hash: ``ObjectModel.mesh_hash`` of its geometry.
+        object_name: the object the network describes (``ObjectModel.name``, :func:`~don_gym.objects.part_name`);
+            for a person to read: identity is :attr:`object_signature`.
+        object_mesh_hash: ``ObjectModel.mesh_hash`` of its geometry where it was trained (provenance).
         image_size: ``(W, H)`` in pixels of the training images.
-        descriptor_field_hash: hash of the optimal-descriptor field the targets came from
-            (supervised methods; empty for ``self-supervised``).
+        descriptor_field_hash: ``DescriptorField.field_hash`` of the dataset's field file the targets came
+            from (supervised methods; empty for ``self-supervised``): provenance, not compared across machines.
         background_descriptor: the field's background descriptor (supervised methods), so
             a user of the network can tell predicted background from object.
         renderer: renderer of the training images (e.g. ``"tiny"``, ``"egl"``).
@@ -60,6 +67,9 @@ class CheckpointMetadata:
         weights_dtype, weights_sha256, don_gym_version, format_version: written by
             :func:`save_checkpoint`.
         extra: free-form JSON-serialisable training details (learning rate, seed, ...).
+        object_signature, descriptor_field, identity_sha256: the :class:`PartIdentity`, written by
+            :func:`save_checkpoint` (empty without one): ``ShapeSignature.to_dict()``, the field's
+            non-array settings, and a SHA-256 of the identity's tensors.
     """
 
     method: str
@@ -80,6 +90,9 @@ class CheckpointMetadata:
     don_gym_version: str = ""
     format_version: int = FORMAT_VERSION
     extra: dict[str, Any] = field(default_factory=dict)
+    object_signature: dict[str, Any] = field(default_factory=dict)
+    descriptor_field: dict[str, Any] = field(default_factory=dict)
+    identity_sha256: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -116,9 +129,9 @@ class CheckpointMetadata:
                 elif name in ("training_steps", "descriptor_dim", "format_version"):
                     if isinstance(value, bool) or not isinstance(value, int):
                         raise TypeError(f"{name} must be an integer, got {value!r}")
-                elif name == "extra":
+                elif name in ("extra", "object_signature", "descriptor_field"):
                     if not isinstance(value, dict):
-                        raise TypeError(f"extra must be an object, got {value!r}")
+                        raise TypeError(f"{name} must be an object, got {value!r}")
                 elif not isinstance(value, str):
                     raise TypeError(f"{name} must be a string, got {value!r}")
                 values[name] = value
@@ -143,18 +156,142 @@ def _check(condition: bool, message: str) -> None:
         raise CheckpointError(message)
 
 
+@dataclass(frozen=True, eq=False)
+class PartIdentity:
+    """What a network knows of the part it was trained on: enough to recognise the part on any machine
+    and to give its reference descriptors without recomputing anything.
+
+    Attributes:
+        signature: the part's :class:`~don_gym.objects.ShapeSignature` (what identity is decided by).
+        vertices_m: (N, 3) float64 vertices of the trained mesh, object frame, metres.
+        faces: (F, 3) int64 faces of the trained mesh.
+        field: the optimal descriptor field its targets came from, on those vertices (supervised
+            methods), else None.
+    """
+
+    signature: ShapeSignature
+    vertices_m: np.ndarray
+    faces: np.ndarray
+    field: DescriptorField | None = None
+
+    @classmethod
+    def of(cls, part: ObjectModel, field: DescriptorField | None = None) -> PartIdentity:
+        """The identity of ``part``, with ``field`` (one computed on ``part``'s mesh) if given."""
+        vertices = np.array(part.mesh.vertices, dtype=np.float64)
+        if field is not None and field.n_vertices != len(vertices):
+            raise DonGymError(
+                f"descriptor field has {field.n_vertices} vertices but part {part.name!r} has {len(vertices)}; "
+                "expected the field computed on this part's mesh"
+            )
+        return cls(part.shape_signature, vertices, np.array(part.mesh.faces, dtype=np.int64), field)
+
+    def tensors(self) -> dict[str, torch.Tensor]:
+        """The tensors a checkpoint stores (:data:`PART_TENSORS`, and :data:`FIELD_TENSORS` with a field)."""
+        arrays = {"part.vertices_m": self.vertices_m.astype(np.float64), "part.faces": self.faces.astype(np.int64)}
+        if self.field is not None:
+            arrays |= {
+                "field.vertex_descriptors": self.field.vertex_descriptors.astype(np.float32),
+                "field.eigenvalues": self.field.eigenvalues.astype(np.float64),
+                "field.background": self.field.background.astype(np.float32),
+            }
+        return {name: torch.from_numpy(np.ascontiguousarray(a)) for name, a in arrays.items()}
+
+    def field_settings(self) -> dict[str, Any]:
+        """The field's non-array settings (:attr:`CheckpointMetadata.descriptor_field`); empty without a field."""
+        if self.field is None:
+            return {}
+        return {
+            "dim": self.field.dim,
+            "groups": [list(g) for g in self.field.groups],
+            "symmetric": bool(self.field.symmetric),
+            "tolerance": float(self.field.tolerance),
+            "solver": self.field.solver,
+            "embedded_vertices": int(self.field.embedded_vertices),
+        }
+
+    def vertex_order(self, part: ObjectModel) -> np.ndarray | None:
+        """(N,) index of the trained vertex at each of ``part``'s vertices, or None when ``part``'s vertices
+        are not the trained ones (in any order, within :data:`VERTEX_MATCH_ATOL_M`, same object frame)."""
+        vertices = np.asarray(part.mesh.vertices, dtype=np.float64)
+        if vertices.shape != self.vertices_m.shape:
+            return None
+        if np.abs(vertices - self.vertices_m).max() <= VERTEX_MATCH_ATOL_M:
+            return np.arange(len(vertices))
+        from scipy.spatial import cKDTree
+
+        distance, index = cKDTree(self.vertices_m).query(vertices)
+        if distance.max() > VERTEX_MATCH_ATOL_M or len(np.unique(index)) != len(index):
+            return None
+        return np.asarray(index, dtype=np.int64)
+
+    def field_on(self, part: ObjectModel, computed: DescriptorField, source: str) -> DescriptorField:
+        """The trained field on ``part``'s vertices, after checking that it is ``computed`` (``part``'s own
+        field, same dim and symmetry) within :data:`~don_gym.descriptors.FIELD_MATCH_ATOL`; else
+        CheckpointError naming ``source`` and the part and saying what to do."""
+        if self.field is None:
+            raise DonGymError(f"{source}: carries no descriptor field")
+        order = self.vertex_order(part)
+        if order is None:
+            raise CheckpointError(
+                f"{source}: part {part.name!r} has the shape of the part the network was trained on but not its "
+                f"vertices in the same object frame (within {VERTEX_MATCH_ATOL_M:g} m), so its descriptor field "
+                f"cannot be placed on it; {FIELD_ADVICE}"
+            )
+        trained = dataclasses.replace(
+            self.field, vertex_descriptors=self.field.vertex_descriptors[order], mesh_hash=part.mesh_hash
+        )
+        difference = trained.max_difference(computed)
+        if difference > FIELD_MATCH_ATOL:
+            raise CheckpointError(
+                f"{source}: trained towards a descriptor field that differs from part {part.name!r}'s by "
+                f"{difference:.3g} (max abs difference; tolerance {FIELD_MATCH_ATOL:g}); {FIELD_ADVICE}"
+            )
+        return trained
+
+
+def part_mismatch(metadata: CheckpointMetadata, part: ObjectModel) -> str | None:
+    """Why the network of ``metadata`` is not for ``part``, or None when it is: decided by the shape
+    signature; a checkpoint without one (format 1) by name (:func:`~don_gym.objects.part_name`)."""
+    if not metadata.object_signature:
+        if part_name(metadata.object_name) != part.name:
+            return f"object_name is {metadata.object_name!r}, expected {part.name!r}"
+        return None
+    try:
+        trained = ShapeSignature.from_dict(metadata.object_signature, "object_signature")
+    except MeshError as exc:
+        return str(exc)
+    differences = part.shape_signature.differences(trained)
+    if not differences:
+        return None
+    return (
+        f"trained on part {metadata.object_name!r}, but part {part.name!r} ({part.source}) has another shape "
+        f"({', '.join(differences[:3])}: this part vs the trained one); use a network trained on this part "
+        "(build a dataset of it and train one)"
+    )
+
+
 def save_checkpoint(
     path: str | Path,
     model: DenseObjectNet,
     metadata: CheckpointMetadata | Mapping[str, Any],
     weights_dtype: str = "float32",
+    identity: PartIdentity | None = None,
 ) -> CheckpointMetadata:
     """Write ``model`` and ``metadata`` to ``path`` (``.safetensors``) atomically; returns the metadata written.
+
+    The weights are the model's state dict (float32, or float16 on request: :data:`WEIGHT_DTYPES`);
+    the safetensors metadata holds one key, ``"don_gym"``, whose value is the JSON of
+    :class:`CheckpointMetadata`, including a SHA-256 of the weights. safetensors never executes
+    code on load (unlike a pickled ``.pth``), and the hash catches corruption that leaves the
+    file size intact.
 
     ``metadata`` is a :class:`CheckpointMetadata` or a mapping of its field names.
     ``arch``, ``descriptor_dim`` and the normalisation are taken from the model; if the
     metadata states them differently, that is an error rather than a silent overwrite.
     ``weights_dtype="float16"`` halves the file (floating-point tensors only).
+    ``identity`` (:meth:`PartIdentity.of` the trained part and field) is stored as tensors beside the
+    weights and fills ``object_signature``, ``descriptor_field`` and ``identity_sha256``; without it they
+    are empty and users of the network match it to a part by name only.
     """
     path = Path(path)
     if not isinstance(metadata, CheckpointMetadata):
@@ -198,10 +335,24 @@ def save_checkpoint(
         format_version=FORMAT_VERSION,
         **from_model,
     )
+    return _write(path, tensors, final, identity)
+
+
+def _write(
+    path: Path, weights: dict[str, torch.Tensor], metadata: CheckpointMetadata, identity: PartIdentity | None
+) -> CheckpointMetadata:
+    """Write ``weights`` and ``identity``'s tensors with ``metadata`` (its identity fields filled in) atomically."""
+    extra = identity.tensors() if identity is not None else {}
+    final = dataclasses.replace(
+        metadata,
+        object_signature=identity.signature.to_dict() if identity is not None else {},
+        descriptor_field=identity.field_settings() if identity is not None else {},
+        identity_sha256=_weights_sha256(extra) if extra else "",
+    )
     from safetensors.torch import save_file
 
     with atomic_path(path) as tmp:
-        save_file(tensors, str(tmp), metadata={METADATA_KEY: json.dumps(final.to_dict(), sort_keys=True)})
+        save_file(weights | extra, str(tmp), metadata={METADATA_KEY: json.dumps(final.to_dict(), sort_keys=True)})
     return final
 
 
@@ -250,6 +401,72 @@ def read_checkpoint_metadata(path: str | Path) -> CheckpointMetadata:
     return metadata
 
 
+def read_part_identity(path: str | Path, metadata: CheckpointMetadata | None = None) -> PartIdentity | None:
+    """The :class:`PartIdentity` stored in a checkpoint (None for one saved without it, e.g. format 1),
+    checked against its ``identity_sha256``; ``metadata``: the file's, if already read."""
+    path = Path(path)
+    metadata = metadata if metadata is not None else read_checkpoint_metadata(path)
+    if not metadata.object_signature:
+        return None
+    names = PART_TENSORS + (FIELD_TENSORS if metadata.descriptor_field else ())
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            missing = sorted(set(names) - set(handle.keys()))
+            _check(
+                not missing,
+                f"checkpoint {path}: its metadata states a part identity but the tensors {missing} are missing",
+            )
+            tensors = {name: handle.get_tensor(name) for name in names}
+    except CheckpointError:
+        raise
+    except Exception as exc:  # safetensors raises its own error type for damaged data
+        raise CheckpointError(
+            f"checkpoint {path}: part identity cannot be read (corrupt or truncated?): {type(exc).__name__}: {exc}"
+        ) from exc
+    digest = _weights_sha256(tensors)
+    _check(
+        digest == metadata.identity_sha256,
+        f"checkpoint {path}: identity_sha256 is {digest[:16]}... for the stored part identity, expected "
+        f"{metadata.identity_sha256[:16]}... from its metadata (the file is corrupt)",
+    )
+    try:
+        signature = ShapeSignature.from_dict(metadata.object_signature, f"checkpoint {path}: object_signature")
+    except MeshError as exc:
+        raise CheckpointError(str(exc)) from exc
+    vertices = tensors["part.vertices_m"].numpy().astype(np.float64)
+    faces = tensors["part.faces"].numpy().astype(np.int64)
+    _check(
+        vertices.ndim == 2 and vertices.shape[1:] == (3,) and faces.ndim == 2 and faces.shape[1:] == (3,),
+        f"checkpoint {path}: part mesh has vertices {tuple(vertices.shape)} and faces {tuple(faces.shape)}; "
+        "expected (N, 3) and (F, 3)",
+    )
+    field_obj = None
+    if metadata.descriptor_field:
+        settings = metadata.descriptor_field
+        try:
+            field_obj = DescriptorField(
+                vertex_descriptors=tensors["field.vertex_descriptors"].numpy().astype(np.float32),
+                eigenvalues=tensors["field.eigenvalues"].numpy().astype(np.float64),
+                groups=tuple(tuple(int(i) for i in g) for g in settings["groups"]),
+                background=tensors["field.background"].numpy().astype(np.float32),
+                symmetric=bool(settings["symmetric"]),
+                mesh_hash=mesh_content_hash(vertices, faces),
+                tolerance=float(settings["tolerance"]),
+                solver=str(settings["solver"]),
+                embedded_vertices=int(settings["embedded_vertices"]),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CheckpointError(f"checkpoint {path}: invalid descriptor_field settings ({exc})") from exc
+        _check(
+            field_obj.n_vertices == len(vertices) and field_obj.background.shape == (field_obj.dim,),
+            f"checkpoint {path}: descriptor field of {field_obj.n_vertices} vertices and background "
+            f"{tuple(field_obj.background.shape)} does not fit its part's {len(vertices)} vertices",
+        )
+    return PartIdentity(signature, vertices, faces, field_obj)
+
+
 def check_metadata(
     metadata: CheckpointMetadata,
     source: str,
@@ -257,8 +474,13 @@ def check_metadata(
     expect_descriptor_dim: int | None = None,
     expect_method: str | None = None,
     expect_field_hash: str | None = None,
+    expect_part: ObjectModel | None = None,
 ) -> None:
-    """Raise :class:`CheckpointError` listing every field that differs from what the caller expects."""
+    """Raise :class:`CheckpointError` listing every field that differs from what the caller expects.
+
+    ``expect_part`` is the part the network will describe: matched by geometry (:func:`part_mismatch`);
+    ``expect_object`` compares the recorded name only.
+    """
     expectations = {
         "object_name": expect_object,
         "descriptor_dim": expect_descriptor_dim,
@@ -270,6 +492,9 @@ def check_metadata(
         for name, expected in expectations.items()
         if expected is not None and getattr(metadata, name) != expected
     ]
+    mismatch = part_mismatch(metadata, expect_part) if expect_part is not None else None
+    if mismatch:
+        problems.append(mismatch)
     if problems:
         raise CheckpointError(f"checkpoint {source}: " + "; ".join(problems))
 
@@ -281,29 +506,22 @@ def load_checkpoint(
     expect_method: str | None = None,
     expect_field_hash: str | None = None,
     map_location: str | torch.device = "cpu",
+    expect_part: ObjectModel | None = None,
 ) -> tuple[DenseObjectNet, CheckpointMetadata]:
     """Load a checkpoint written by :func:`save_checkpoint`: ``(model in eval mode, metadata)``.
 
     Each ``expect_*`` that is not None must equal the stored value (object name,
-    descriptor dimension, method, descriptor-field hash), else :class:`CheckpointError`.
+    descriptor dimension, method, descriptor-field hash; ``expect_part``: the part, by geometry, see
+    :func:`check_metadata`), else :class:`CheckpointError`. So does
+    a missing, truncated or corrupt file, or a safetensors file that is not a don_gym checkpoint;
+    the message names the file, the field, the value found and the value expected.
     """
     path = Path(path)
     metadata = read_checkpoint_metadata(path)
-    check_metadata(metadata, str(path), expect_object, expect_descriptor_dim, expect_method, expect_field_hash)
-    from safetensors.torch import load_file
-
-    try:
-        tensors = load_file(str(path), device="cpu")
-    except Exception as exc:  # truncated data shows up only here
-        raise CheckpointError(
-            f"checkpoint {path}: weights cannot be read (corrupt or truncated?): {type(exc).__name__}: {exc}"
-        ) from exc
-    digest = _weights_sha256(tensors)
-    _check(
-        digest == metadata.weights_sha256,
-        f"checkpoint {path}: weights_sha256 is {digest[:16]}... for the stored weights, expected "
-        f"{metadata.weights_sha256[:16]}... from its metadata (the file is corrupt)",
+    check_metadata(
+        metadata, str(path), expect_object, expect_descriptor_dim, expect_method, expect_field_hash, expect_part
     )
+    tensors = _read_weights(path, metadata)
     model = DenseObjectNet(
         metadata.arch,
         metadata.descriptor_dim,
@@ -322,3 +540,80 @@ def load_checkpoint(
     )
     model.load_state_dict(tensors)  # copy_ converts float16 weights to the model's float32
     return model.to(map_location).eval(), metadata
+
+
+def _read_weights(path: Path, metadata: CheckpointMetadata) -> dict[str, torch.Tensor]:
+    """The stored weights (every tensor but the part identity's), checked against ``weights_sha256``."""
+    from safetensors.torch import load_file
+
+    try:
+        tensors = load_file(str(path), device="cpu")
+    except Exception as exc:  # truncated data shows up only here
+        raise CheckpointError(
+            f"checkpoint {path}: weights cannot be read (corrupt or truncated?): {type(exc).__name__}: {exc}"
+        ) from exc
+    tensors = {name: t for name, t in tensors.items() if name not in PART_TENSORS + FIELD_TENSORS}
+    digest = _weights_sha256(tensors)
+    _check(
+        digest == metadata.weights_sha256,
+        f"checkpoint {path}: weights_sha256 is {digest[:16]}... for the stored weights, expected "
+        f"{metadata.weights_sha256[:16]}... from its metadata (the file is corrupt)",
+    )
+    return tensors
+
+
+def restamp_checkpoint(
+    path: str | Path, part: ObjectModel, candidate_fields: Sequence[DescriptorField] = ()
+) -> tuple[CheckpointMetadata, str]:
+    """Add the part identity of ``part`` (and, for a supervised network, its descriptor field) to a
+    checkpoint saved without one, leaving its weights byte for byte as they are; ``(metadata, what was done)``.
+
+    The checkpoint must have been trained on ``part``: its recorded name and ``object_mesh_hash`` must be
+    ``part``'s. The field is the first of ``candidate_fields`` (e.g. its dataset's ``descriptor_field.npz``),
+    else :func:`~don_gym.descriptors.embed` of ``part`` computed here, whose ``field_hash`` is the recorded
+    ``descriptor_field_hash``. Both hashes are of float bytes, so run this where the network was trained
+    (or where the same code gives the same bytes); without a matching field only the part is stamped, and
+    users take reference descriptors from a reference frame. Idempotent: a checkpoint that already has all
+    it can get is left untouched, and one stamped without a field gets it once a matching one is found.
+    """
+    path = Path(path)
+    metadata = read_checkpoint_metadata(path)
+    existing = read_part_identity(path, metadata)
+    wants_field = is_supervised(metadata.method)
+    if existing is not None:
+        differences = part.shape_signature.differences(existing.signature)
+        _check(
+            not differences and existing.vertex_order(part) is not None,
+            f"checkpoint {path}: carries the identity of another part than {part.name!r} "
+            f"({', '.join(differences[:3]) or 'other vertices'}); nothing restamped",
+        )
+        if existing.field is not None or not wants_field:
+            return metadata, "unchanged: carries its part identity" + (" and field" if existing.field else "")
+    elif part_name(metadata.object_name) != part.name or metadata.object_mesh_hash != part.mesh_hash:
+        raise CheckpointError(
+            f"checkpoint {path}: trained on part {metadata.object_name!r} with mesh hash "
+            f"{metadata.object_mesh_hash}, but part {part.name!r} has mesh hash {part.mesh_hash} here; restamp "
+            "it with the part it was trained on, where that part's mesh is built as the trainer's was"
+        )
+    field_obj = None
+    if wants_field:
+        recorded = metadata.descriptor_field_hash
+        found = [f for f in candidate_fields if f.field_hash == recorded and f.n_vertices == len(part.mesh.vertices)]
+        computed = [] if found else [embed(part, dim=metadata.descriptor_dim, symmetric=s) for s in (True, False)]
+        found += [f for f in computed if f.field_hash == recorded]
+        field_obj = found[0] if found else None
+        if field_obj is None and existing is not None:
+            return metadata, f"unchanged: carries its part identity; still no field with hash {recorded}"
+    weights = _read_weights(path, metadata)
+    final = _write(
+        path, weights, dataclasses.replace(metadata, format_version=FORMAT_VERSION), PartIdentity.of(part, field_obj)
+    )
+    if not wants_field:
+        return final, "stamped the part identity (no field: not a supervised network)"
+    if field_obj is not None:
+        return final, f"stamped the part identity and its descriptor field {recorded}"
+    others = ", ".join(sorted({f.field_hash for f in list(candidate_fields) + computed}))
+    return final, (
+        f"stamped the part identity only: no field has the recorded hash {recorded} (found: {others}), so "
+        "its users take reference descriptors from a reference frame"
+    )

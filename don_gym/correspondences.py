@@ -1,9 +1,7 @@
 """Pixel correspondences between two views of a scene, for self-supervised DON training.
 
-Follows the sampling of the original DON code (NOTES.md section 2): match attempts drawn
-uniformly on image A's object mask, reprojected into image B with depth and the camera
-poses, and pruned for missing depth, leaving the image and occlusion; for every match,
-non-matches in image B, half on B's object mask and half on B's background.
+Matches and non-matches are sampled as in the original DON code (docs/background.md, section
+"Self-supervised DON training"); :func:`sample_correspondences` says where don_gym departs from it.
 """
 
 from __future__ import annotations
@@ -68,8 +66,9 @@ def camera_poses_differ(
     min_translation_m: float = 0.2,
     min_rotation_rad: float = float(np.deg2rad(20.0)),
 ) -> bool:
-    """Pair-selection rule of the original code: the camera centres are more than
-    ``min_translation_m`` apart or the orientations differ by more than ``min_rotation_rad``."""
+    """Pair-selection rule of the original code (docs/background.md, section "Self-supervised DON
+    training"): the camera centres are more than ``min_translation_m`` apart or the orientations
+    differ by more than ``min_rotation_rad``."""
     T_a = np.asarray(T_world_camera_a, dtype=np.float64)
     T_b = np.asarray(T_world_camera_b, dtype=np.float64)
     translation = float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]))

@@ -1,36 +1,22 @@
-"""On-disk DON datasets: one format feeding both training methods.
+"""On-disk DON datasets: one format feeding both training methods (layout: ``docs/dataset_format.md``).
 
-A dataset directory holds recorded scenes of one object (the paper's "static scene
-recordings"), plus everything each training method needs: descriptor targets rendered
-from the object model for the supervised method, and fused depth and masks for the
-self-supervised one. Format version 1 (documented in ``docs/dataset_format.md``)::
-
-    DIR/
-      dataset.json                 dataset-wide settings (object, sizes, sensor, renderer,
-                                   seed, descriptor-field hash, format name and version)
-      descriptor_field.npz         the object's optimal descriptor field (DescriptorField)
-      scenes/scene_000000/
-        scene.json                 written last: marks the scene complete (intrinsics,
-                                   per-frame poses, object pose, scene seed, background)
-        rgb/000000.png             uint8 RGB
-        depth/000000.png           uint16 millimetres, sensor depth (0 = no return)
-        depth_ideal/000000.png     uint16 millimetres, simulator z-buffer depth
-        depth_fused/000000.png     uint16 millimetres, TSDF-fused sensor depth re-rendered
-        mask/000000.png            uint8 {0, 255}, object mask from the simulator's segmentation
-        mask_fused/000000.png      uint8 {0, 255}, object mask from the fused model
-        target_mask/000000.png     uint8 {0, 255}, mask of the rendered descriptor target
-        descriptor/000000.png      uint16 RGB (D = 3) or descriptor/000000.npy float16 (D != 3):
-                                   geometric descriptor target in [0, 1], background outside
-
-Frame files are written under a temporary name and renamed; ``scene.json`` is written
-only after all frames of the scene, so an interrupted build leaves no half-written frame
-and a resumed build redoes exactly the incomplete scenes.
+A dataset directory holds recorded scenes of one object (the paper's "static scene recordings") with
+descriptor targets for the supervised method and fused depth and masks for the self-supervised one.
+A scene is written into a hidden temporary directory and renamed into place when complete, so a
+scene is complete iff its directory exists; writers of one dataset coordinate through ``.lock``.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import fcntl
 import json
-from collections.abc import Mapping
+import os
+import shutil
+import socket
+import tempfile
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,34 +26,40 @@ import numpy as np
 
 from don_gym.errors import DatasetError
 from don_gym.geometry import CameraIntrinsics
-from don_gym.io import atomic_path, write_text_atomic
+from don_gym.io import atomic_path, write_png, write_text_atomic
 
 FORMAT_NAME = "don_gym-dataset"
 FORMAT_VERSION = 1
 DATASET_FILE = "dataset.json"
 FIELD_FILE = "descriptor_field.npz"
 SCENE_FILE = "scene.json"
+LOCK_FILE = ".lock"
 
 #: Image kinds stored per frame, with their on-disk encoding.
 FRAME_KINDS = ("rgb", "depth", "depth_ideal", "depth_fused", "mask", "mask_fused", "target_mask", "descriptor")
 DEPTH_KINDS = ("depth", "depth_ideal", "depth_fused")
 MASK_KINDS = ("mask", "mask_fused", "target_mask")
+#: Named depth sources: the (depth kind, object-mask kind) images each one reads.
+DEPTH_SOURCES = {"fused": ("depth_fused", "mask_fused"), "sensor": ("depth", "mask"), "ideal": ("depth_ideal", "mask")}
 
 #: Largest depth a uint16 millimetre PNG can hold, metres.
-MAX_DEPTH_M = 65.535
+PNG_DEPTH_MAX_M = 65.535
 
-#: Settings that must match for two builds to share a directory.
-IDENTITY_KEYS = (
-    "object",
-    "mesh_hash",
-    "descriptor_field_hash",
-    "descriptor_dim",
-    "image_size",
-    "frames_per_scene",
-    "sensor",
-    "renderer",
-    "seed",
-)
+#: Settings of ``dataset.json`` that shape the data, so they must match for two builds to share a
+#: directory, each with the ``build-dataset`` option that sets it (named in refusals).
+IDENTITY_KEYS = {
+    "mesh_hash": "--object/--object-scale (the object's mesh)",
+    "descriptor_dim": "--dim",
+    "symmetric": "--no-symmetry",
+    "descriptor_field_hash": "the descriptor field",
+    "image_size": "--size",
+    "frames_per_scene": "--frames",
+    "sensor": "--sensor",
+    "renderer": "--renderer",
+    "seed": "--seed",
+    "fuse_depth": "--no-fusion",
+    "voxel_size_m": "voxel_size_m",
+}
 
 
 def scene_dir(root: str | Path, scene_index: int) -> Path:
@@ -96,12 +88,6 @@ def decode_depth_mm(depth_mm: np.ndarray) -> np.ndarray:
     return np.asarray(depth_mm, dtype=np.float32) / 1000.0
 
 
-def _write_png(path: Path, image: np.ndarray) -> None:
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), image):
-            raise OSError(f"could not write {path}")
-
-
 def _read_png(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
     image = cv2.imread(str(path), flags)
     if image is None:
@@ -120,14 +106,14 @@ def write_frame(scene_path: Path, frame_index: int, images: Mapping[str, np.ndar
             raise ValueError(f"unknown frame kind {kind!r}; expected one of {FRAME_KINDS}")
         path = frame_path(scene_path, kind, frame_index, descriptor_dim)
         if kind == "rgb":
-            _write_png(path, cv2.cvtColor(np.asarray(image, dtype=np.uint8), cv2.COLOR_RGB2BGR))
+            write_png(path, cv2.cvtColor(np.asarray(image, dtype=np.uint8), cv2.COLOR_RGB2BGR))
         elif kind in DEPTH_KINDS:
-            _write_png(path, encode_depth_mm(image))
+            write_png(path, encode_depth_mm(image))
         elif kind in MASK_KINDS:
-            _write_png(path, np.asarray(image, dtype=bool).astype(np.uint8) * 255)
+            write_png(path, np.asarray(image, dtype=bool).astype(np.uint8) * 255)
         elif descriptor_dim == 3:
             quantised = np.rint(np.clip(np.asarray(image, dtype=np.float64), 0.0, 1.0) * 65535.0).astype(np.uint16)
-            _write_png(path, quantised[..., ::-1])
+            write_png(path, quantised[..., ::-1])
         else:
             with atomic_path(path) as tmp:
                 np.save(tmp, np.asarray(image, dtype=np.float16))
@@ -168,8 +154,9 @@ def _to_jsonable(value: Any) -> Any:
     return value
 
 
-def write_json(path: Path, data: Mapping[str, Any]) -> None:
-    write_text_atomic(path, json.dumps(_to_jsonable(data), indent=1) + "\n")
+def write_json(path: Path, data: Mapping[str, Any], *, exclusive: bool = False) -> None:
+    """Write ``data`` as JSON atomically; ``exclusive``: only if ``path`` does not exist (FileExistsError)."""
+    write_text_atomic(path, json.dumps(_to_jsonable(data), indent=1) + "\n", exclusive=exclusive)
 
 
 def read_json(path: Path) -> dict[str, Any]:
@@ -181,14 +168,179 @@ def read_json(path: Path) -> dict[str, Any]:
         raise DatasetError(f"{path}: unreadable JSON ({exc})") from exc
 
 
+def check_dataset_info(info: Any, path: Path) -> dict[str, Any]:
+    """``info`` (the parsed ``dataset.json`` at ``path``) if this don_gym can read it, else DatasetError."""
+    if not isinstance(info, dict) or info.get("format") != FORMAT_NAME:
+        found = info.get("format") if isinstance(info, dict) else type(info).__name__
+        raise DatasetError(f"{path}: not a don_gym dataset (format={found!r}; expected {FORMAT_NAME!r})")
+    version = info.get("version")
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise DatasetError(f"{path}: format version {version!r} is not an integer; the file is corrupt")
+    if version > FORMAT_VERSION:
+        raise DatasetError(
+            f"{path}: written by a newer don_gym (format version {version}; this one reads up to "
+            f"{FORMAT_VERSION}); upgrade don_gym"
+        )
+    if version < 1:
+        raise DatasetError(f"{path}: unknown format version {version}; expected 1 to {FORMAT_VERSION}")
+    return info
+
+
 def check_dataset_identity(existing: Mapping[str, Any], wanted: Mapping[str, Any], root: Path) -> None:
-    """Raise DatasetError if ``existing`` (dataset.json on disk) is a different dataset."""
-    if existing.get("format") != FORMAT_NAME:
-        raise DatasetError(f"{root}: holds something that is not a don_gym dataset; use an empty directory")
+    """Raise DatasetError, naming each differing option with both values, if ``existing`` (dataset.json
+    on disk) and ``wanted`` describe different data."""
+    check_dataset_info(existing, Path(root) / DATASET_FILE)
     different = [k for k in IDENTITY_KEYS if _to_jsonable(existing.get(k)) != _to_jsonable(wanted.get(k))]
     if different:
-        details = ", ".join(f"{k}: {existing.get(k)!r} on disk vs {wanted.get(k)!r} asked" for k in different)
-        raise DatasetError(f"{root}: holds a different dataset ({details}); pass --overwrite to replace it")
+        on_disk, asked = _to_jsonable(existing), _to_jsonable(wanted)
+        details = "; ".join(
+            f"{k} ({IDENTITY_KEYS[k]}): {on_disk.get(k)!r} on disk, {asked.get(k)!r} asked" for k in different
+        )
+        objects = f" [object {existing.get('object')!r} on disk, {wanted.get('object')!r} asked]"
+        empty = not any((p / SCENE_FILE).is_file() for p in (Path(root) / "scenes").glob("scene_*"))
+        raise DatasetError(
+            f"{root}: holds a different dataset ({details}){objects if 'mesh_hash' in different else ''}; "
+            f"pass --overwrite to replace it{' (it has no complete scene yet)' if empty else ''} "
+            "or use another directory"
+        )
+
+
+# --- writing scenes: temporary directory, then one rename ---------------------------------------
+
+_HOST = "".join(c if c.isalnum() or c in "-_" else "_" for c in socket.gethostname()) or "host"
+
+
+def scene_is_complete(path: Path) -> bool:
+    """A scene directory under its final name is complete; one without ``scene.json`` was left by
+    an older don_gym (which wrote in place) or damaged by hand, and is rebuilt."""
+    return (path / SCENE_FILE).is_file()
+
+
+def new_scene_tmp_dir(root: Path, scene_index: int) -> Path:
+    """A fresh hidden directory next to the scene's final one, named after this host and process."""
+    final = scene_dir(root, scene_index)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    path = Path(tempfile.mkdtemp(prefix=f".{final.name}.partial-{_HOST}-{os.getpid()}-", dir=final.parent))
+    # mkdtemp makes it owner-only; the scene keeps these permissions, and others may read the dataset.
+    umask = os.umask(0)
+    os.umask(umask)
+    path.chmod(0o777 & ~umask)
+    return path
+
+
+def publish_scene(tmp: Path, final: Path) -> bool:
+    """Rename the complete scene ``tmp`` to ``final``, atomically also on NFS; False (and ``tmp``
+    removed) when another writer got there first with its own complete copy."""
+    stale = None
+    if final.exists() and not scene_is_complete(final):
+        stale = final.with_name(f".{final.name}.stale-{_HOST}-{os.getpid()}-{os.urandom(4).hex()}")
+        with contextlib.suppress(FileNotFoundError):  # another writer moved it aside first
+            os.rename(final, stale)
+    try:
+        os.rename(tmp, final)
+        return True
+    except OSError as exc:
+        if exc.errno not in (errno.EEXIST, errno.ENOTEMPTY) or not scene_is_complete(final):
+            raise
+        shutil.rmtree(tmp, ignore_errors=True)
+        return False
+    finally:
+        if stale is not None:
+            shutil.rmtree(stale, ignore_errors=True)
+
+
+def remove_stale_scene_dirs(root: Path, scene_index: int) -> None:
+    """Remove temporary directories of scene ``scene_index`` left by dead processes of this host.
+
+    Call it holding the scene's lock: no live process of this machine is then writing the scene.
+    Directories of other hosts are left alone (their writers may be alive; readers ignore them).
+    """
+    final = scene_dir(root, scene_index)
+    for kind in ("partial", "stale"):
+        for path in final.parent.glob(f".{final.name}.{kind}-{_HOST}-*"):
+            pid = path.name[len(f".{final.name}.{kind}-{_HOST}-") :].split("-")[0]
+            if pid.isdigit() and not _process_alive(int(pid)):
+                shutil.rmtree(path, ignore_errors=True)
+
+
+def _process_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, someone else's
+        return True
+    return True
+
+
+class DatasetLock:
+    """Advisory locks on ``DIR/.lock`` between the writers of one dataset on one machine.
+
+    POSIX byte-range locks (``fcntl.lockf``), released by the kernel when a process dies: byte 0
+    is held shared by every writer for its whole run and exclusively by ``--overwrite``; byte 1
+    exclusively while the dataset-level files are checked or written; byte 2 + k while scene k is
+    written. Correctness across machines does not rest on them (files are published by atomic
+    create and rename); they keep one machine's writers from racing and repeating each other's work.
+    Use one instance per process: closing any descriptor of the file drops the process's locks on it.
+    """
+
+    _SESSION, _METADATA, _FIRST_SCENE = 0, 1, 2
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+        self._fd: int | None = os.open(self.root / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o666)
+
+    def _lock(self, byte: int, mode: int, blocking: bool = True) -> bool:
+        assert self._fd is not None, "lock used after close()"
+        try:
+            fcntl.lockf(self._fd, mode if blocking else mode | fcntl.LOCK_NB, 1, byte)
+        except OSError as exc:
+            if exc.errno in (errno.EACCES, errno.EAGAIN):
+                return False
+            if exc.errno in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
+                return True  # a file system without locks (some NFS set-ups): atomic publishing still holds
+            raise
+        return True
+
+    def hold_session(self, exclusive: bool = False) -> None:
+        """Join the writers of this dataset (shared) or, for ``--overwrite``, become the only one."""
+        if self._lock(self._SESSION, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH, blocking=False):
+            return
+        if exclusive:
+            raise DatasetError(
+                f"{self.root}: another don-gym process is writing this dataset; wait for it to finish "
+                "before --overwrite, or use another directory"
+            )
+        raise DatasetError(
+            f"{self.root}: another don-gym process is replacing this dataset (--overwrite); wait for it to finish"
+        )
+
+    def share_session(self) -> None:
+        """After ``hold_session(exclusive=True)``: let other writers of the same dataset join."""
+        self._lock(self._SESSION, fcntl.LOCK_SH)
+
+    @contextlib.contextmanager
+    def metadata(self) -> Iterator[None]:
+        self._lock(self._METADATA, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            self._lock(self._METADATA, fcntl.LOCK_UN)
+
+    @contextlib.contextmanager
+    def scene(self, scene_index: int) -> Iterator[None]:
+        self._lock(self._FIRST_SCENE + scene_index, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            self._lock(self._FIRST_SCENE + scene_index, fcntl.LOCK_UN)
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
 
 @dataclass(frozen=True)
@@ -222,15 +374,11 @@ class DONDataset:
         info_path = self.root / DATASET_FILE
         if not info_path.is_file():
             raise DatasetError(f"{self.root}: no {DATASET_FILE}; expected a directory written by don-gym build-dataset")
-        self.info = read_json(info_path)
-        if self.info.get("format") != FORMAT_NAME:
-            raise DatasetError(f"{info_path}: not a don_gym dataset (format={self.info.get('format')!r})")
-        if int(self.info.get("version", -1)) > FORMAT_VERSION:
-            raise DatasetError(
-                f"{info_path}: format version {self.info.get('version')} is newer than this don_gym reads "
-                f"({FORMAT_VERSION}); upgrade don_gym"
-            )
-        self.descriptor_dim = int(self.info["descriptor_dim"])
+        self.info = check_dataset_info(read_json(info_path), info_path)
+        dim = self.info.get("descriptor_dim")
+        if isinstance(dim, bool) or not isinstance(dim, int) or dim < 1:
+            raise DatasetError(f"{info_path}: descriptor_dim {dim!r} is not an integer >= 1; the file is corrupt")
+        self.descriptor_dim = dim
         self.scenes = [
             self._read_scene(p) for p in sorted((self.root / "scenes").glob("scene_*")) if (p / SCENE_FILE).is_file()
         ]
@@ -264,3 +412,32 @@ class DONDataset:
         from don_gym.descriptors import DescriptorField
 
         return DescriptorField.load(self.root / FIELD_FILE)
+
+    def object_model(self):  # -> ObjectModel; imported lazily like descriptor_field
+        """The dataset's object loaded as it was built (same scale; a mesh file from ``object_source`` when
+        ``object`` was a relative path that is not found from here), checked to be the recorded part: by its
+        shape signature, or by mesh hash in a dataset written before signatures. DatasetError otherwise."""
+        from don_gym.errors import DonGymError
+        from don_gym.objects import ShapeSignature, builtin_names, load_object
+
+        spec, source = str(self.info["object"]), str(self.info.get("object_source", ""))
+        if spec not in builtin_names() and not Path(spec).expanduser().exists() and Path(source).is_file():
+            spec = source
+        try:
+            model = load_object(spec, scale=self.info.get("object_scale"))
+            recorded = self.info.get("object_signature")
+            if recorded:
+                signature = ShapeSignature.from_dict(recorded, f"{self.root / DATASET_FILE}: object_signature")
+                differences = model.shape_signature.differences(signature)
+            elif self.info.get("mesh_hash") not in (None, model.mesh_hash):
+                differences = [f"mesh hash {model.mesh_hash} vs {self.info['mesh_hash']}"]
+            else:
+                differences = []
+        except DonGymError as exc:
+            raise DatasetError(f"{self.root}: the dataset's object cannot be loaded: {exc}") from exc
+        if differences:
+            raise DatasetError(
+                f"{self.root}: was built from a {self.info['object']!r} part that differs from the one that loads "
+                f"now ({', '.join(differences[:3])}: now vs recorded)"
+            )
+        return model

@@ -1,41 +1,8 @@
 """Tracking-error evaluation of DONs on recorded scenes (Kupcsik et al. 2021, Sec. "Quantitative
 Evaluation of Prediction Accuracy"), with the original DON metrics (Florence et al. 2018).
 
-Protocol, per scene of a (held-out) dataset and per method:
-
-1. Reference frame: the frame of the scene with the most usable object pixels (object mask,
-   eroded by ``erode_px`` so that silhouette pixels, whose descriptors and depth mix object and
-   background, are not chosen; ideal depth present). Reference pixels: ``points_per_scene``
-   of them drawn without replacement with ``SeedSequence([seed, scene_index])``, so every
-   method tracks the same points.
-2. Reference descriptors ``d_i``: the method's descriptor image of the reference frame at those
-   pixels. Ground-truth points ``p_i`` (world, metres): the reference frame's *ideal* depth at
-   the pixels, back-projected and moved to the world with the *true* camera pose.
-3. Every other frame ``j``: ``p_i`` is visible if it projects into the image in front of the
-   camera and the ideal depth at its (rounded) projection agrees with its depth within
-   ``visibility_tolerance_m`` (not occluded). For each visible point the best match is the
-   argmin over the whole image of ``||I_j^d(u, v) - d_i||_2``.
-4. Metrics per match: pixel error (matched pixel to the true projection, px); 3D error
-   ``||p~_i - p_i||`` (m) where ``p~_i`` back-projects the frame's depth at the matched pixel
-   (ideal depth by default, ``depth="sensor"`` for the recorded sensor depth) with the frame's
-   *true* camera pose, so the number measures the descriptors (plus the chosen depth), not the
-   hand-eye calibration; matches on pixels without depth have no 3D error and are counted
-   apart (the paper only counts points "which are visible and have valid depth data"); the
-   fraction of all image pixels whose descriptor is closer to ``d_i`` than the descriptor at the
-   true pixel (DON's "fraction false positives", 0 for a perfect match).
-   For a part with a symmetry axis a fourth metric is the 3D error *modulo the symmetry*: the
-   distance between the rings the predicted and true points sweep about the axis. Symmetric
-   optimal descriptors (GISIF) are constant on those rings, so for them the plain 3D error is
-   bounded below by the ring ambiguity while the modulo-symmetry error is not.
-
-The core functions take and return arrays; :func:`evaluate_tracking` runs the protocol over a
-:class:`~don_gym.dataset.DONDataset` for any number of models, loaded by
-:func:`don_gym.wrappers.load_descriptor_source` exactly as the env wrappers and agents load them:
-``"oracle"`` (the object's optimal symmetric descriptors rendered from the true poses, the upper
-bound), a shipped network's short name or a checkpoint path (checked to describe the dataset's
-object). Evaluate on scenes the networks were not trained on: build a separate dataset with
-another seed (``benchmarks/bench_grasp.py`` uses seed 1000, the shipped networks were trained on
-seed 0).
+The protocol is described in docs/background.md, section "Tracking evaluation protocol". The core
+functions take and return arrays; :func:`evaluate_tracking` runs the protocol over a dataset.
 """
 
 from __future__ import annotations
@@ -49,22 +16,22 @@ import cv2
 import numpy as np
 from tqdm.auto import tqdm
 
-from don_gym.dataset import DONDataset, SceneRecord
+from don_gym.dataset import DEPTH_SOURCES, DONDataset, SceneRecord
+from don_gym.descriptor_sources import DescriptorSource, load_descriptor_source
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics, backproject_depth, invert_transform, project_points, transform_points
 from don_gym.keypoints import descriptor_distances, project_visible
-from don_gym.objects import ObjectModel, load_object
-from don_gym.wrappers.descriptors import DescriptorSource, load_descriptor_source
+from don_gym.objects import ObjectModel
 
 #: Percentiles reported for every metric.
 PERCENTILES: tuple[int, ...] = (50, 90, 99)
-#: Depth used for predicted 3D points: dataset image kind per option.
-DEPTH_KINDS: dict[str, str] = {"ideal": "depth_ideal", "sensor": "depth"}
+#: Depths offered for the predicted 3D points, by their names in :data:`don_gym.dataset.DEPTH_SOURCES`.
+TRACKING_DEPTHS: tuple[str, ...] = ("ideal", "sensor")
 
 
 @dataclass(frozen=True)
 class TrackingConfig:
-    """Settings of the tracking protocol (module docstring).
+    """Settings of the tracking protocol (docs/background.md, section "Tracking evaluation protocol").
 
     Attributes:
         points_per_scene: reference pixels per scene (fewer if the object shows fewer usable pixels).
@@ -85,16 +52,21 @@ class TrackingConfig:
     max_scenes: int | None = None
 
     def validate(self) -> None:
-        if self.points_per_scene < 1:
-            raise DonGymError(f"points_per_scene={self.points_per_scene}: expected at least 1")
-        if self.depth not in DEPTH_KINDS:
-            raise DonGymError(f"depth={self.depth!r}: expected one of {list(DEPTH_KINDS)}")
-        if not self.visibility_tolerance_m > 0:
-            raise DonGymError(f"visibility_tolerance_m={self.visibility_tolerance_m}: expected > 0 metres")
-        if self.erode_px < 0:
-            raise DonGymError(f"erode_px={self.erode_px}: expected >= 0 pixels")
-        if self.max_scenes is not None and self.max_scenes < 1:
-            raise DonGymError(f"max_scenes={self.max_scenes}: expected at least 1 or None")
+        def integer(name: str, minimum: int) -> None:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+                raise DonGymError(f"{name}={value!r}: expected an integer >= {minimum}")
+
+        integer("points_per_scene", 1)
+        if self.depth not in TRACKING_DEPTHS:
+            raise DonGymError(f"depth={self.depth!r}: expected one of {list(TRACKING_DEPTHS)}")
+        tolerance = self.visibility_tolerance_m
+        if not (isinstance(tolerance, (int, float, np.number)) and np.isfinite(tolerance) and tolerance > 0):
+            raise DonGymError(f"visibility_tolerance_m={tolerance!r}: expected a finite number of metres > 0")
+        integer("erode_px", 0)
+        integer("seed", 0)
+        if self.max_scenes is not None:
+            integer("max_scenes", 1)
 
 
 # --- pure core ----------------------------------------------------------------------------------
@@ -231,18 +203,12 @@ def percentiles(values: np.ndarray, which: Sequence[int] = PERCENTILES) -> dict[
 
 
 def dataset_object(dataset: DONDataset) -> ObjectModel:
-    """The object of a dataset, loaded as it was built (same scale), checked against its mesh hash."""
-    model = load_object(dataset.info["object"], scale=dataset.info.get("object_scale"))
-    if dataset.info.get("mesh_hash") not in (None, model.mesh_hash):
-        raise DonGymError(
-            f"{dataset.root}: was built from a {dataset.info['object']!r} mesh with hash {dataset.info['mesh_hash']}, "
-            f"but that object now loads with hash {model.mesh_hash}"
-        )
-    return model
+    """The object of a dataset, loaded as it was built and checked to be its part (:meth:`DONDataset.object_model`)."""
+    return dataset.object_model()
 
 
 def frame_observation(dataset: DONDataset, scene: int, frame: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """A dataset frame as an env observation and info, for :class:`don_gym.wrappers.DescriptorSource`:
+    """A dataset frame as an env observation and info, for :class:`don_gym.descriptor_sources.DescriptorSource`:
     ``rgb``, ``depth`` (the *ideal* depth, so the oracle's occlusion test is exact) and
     ``camera_intrinsics``; info holds the true ``T_world_object`` and ``T_world_camera``."""
     record = dataset.scenes[scene]
@@ -372,12 +338,19 @@ def evaluate_tracking(
     config: TrackingConfig = TrackingConfig(),
     progress: bool = True,
 ) -> TrackingResult:
-    """Run the tracking protocol (module docstring) for each method on every scene of ``dataset``.
+    """Run the tracking protocol for each method on every scene of ``dataset``.
 
-    ``methods``: model references (``"oracle"``, shipped network names, checkpoint paths; see
-    :func:`don_gym.wrappers.descriptors.load_descriptor_source`), or a mapping from a label to a
-    reference or a ready :class:`~don_gym.wrappers.DescriptorSource`. All sources are loaded and
-    checked against the dataset's object before any work.
+    The protocol is that of docs/background.md, section "Tracking evaluation protocol". Evaluate on
+    scenes the networks were not trained on: build a separate dataset with another seed
+    (``benchmarks/bench_grasp.py`` uses seed 1000, the shipped networks were trained on seed 0).
+
+    ``methods``: model references, loaded by
+    :func:`don_gym.descriptor_sources.load_descriptor_source` exactly as the env wrappers and
+    agents load them: ``"oracle"`` (the object's optimal symmetric descriptors rendered from the
+    true poses, the upper bound), shipped network names or checkpoint paths (checked to describe
+    the dataset's object); or a mapping from a label to a reference or a ready
+    :class:`~don_gym.descriptor_sources.DescriptorSource`. All sources are loaded and checked against the
+    dataset's object before any work.
     """
     config.validate()
     data = dataset if isinstance(dataset, DONDataset) else DONDataset(dataset)
@@ -390,7 +363,7 @@ def evaluate_tracking(
     sources = {name: load_descriptor_source(ref, model) for name, ref in labelled.items()}
     axis = model.symmetry_axis
     scenes = list(range(len(data.scenes)))[: config.max_scenes]
-    depth_kind = DEPTH_KINDS[config.depth]
+    depth_kind, _ = DEPTH_SOURCES[config.depth]
     collected: dict[str, list[dict[str, np.ndarray]]] = {name: [] for name in sources}
     reference_points = 0
     total = len(sources) * sum(data.scenes[s].num_frames for s in scenes)
@@ -479,7 +452,7 @@ def write_tracking_outputs(result: TrackingResult, out_dir: str | Path) -> dict[
     3D error modulo symmetry, pixel error and fraction closer) into ``out_dir``."""
     import json
 
-    from don_gym import plots
+    from don_gym import plotting
     from don_gym.io import write_text_atomic
 
     out = Path(out_dir)
@@ -497,7 +470,7 @@ def write_tracking_outputs(result: TrackingResult, out_dir: str | Path) -> dict[
     if has_axis:
         histograms.append(("3D tracking error modulo symmetry (mm)", symmetric_mm, 0.1))
     depth = summary["config"]["depth"]
-    paths["histogram"] = plots.plot_error_histograms(
+    paths["histogram"] = plotting.plot_error_histograms(
         histograms, out / "tracking_histogram.png", title=f"Tracking error, {summary['object']} ({name}, {depth} depth)"
     )
     panels = [
@@ -512,7 +485,7 @@ def write_tracking_outputs(result: TrackingResult, out_dir: str | Path) -> dict[
     ]
     if not has_axis:
         panels.pop(1)
-    paths["cdf"] = plots.plot_cdfs(
+    paths["cdf"] = plotting.plot_cdfs(
         panels, out / "tracking_cdf.png", title=f"Tracking, {summary['object']} ({name}, {depth} depth)"
     )
     return paths

@@ -1,25 +1,11 @@
 """Export a don_gym scene in the layout of the original Dense Object Nets code ("pdc").
 
-Users of the original pipeline (Florence et al. 2018) can read our data with their
-loaders. Per scene::
-
-    OUT/<scene name>/processed/
-      images/000000_rgb.png          RGB, uint8
-      images/000000_depth.png        sensor depth, uint16 millimetres, 0 = no return
-      images/pose_data.yaml          {idx: {camera_to_world: {translation: {x, y, z},
-                                             quaternion: {w, x, y, z}}, ...}}
-      images/camera_info.yaml        {camera_matrix: {rows, cols, data (row-major 3x3)},
-                                      image_width, image_height, width, height}
-      image_masks/000000_mask.png    object mask, uint8 0/1 (from the fused model, as there)
-      rendered_images/000000_depth.png   fused depth re-rendered per frame, uint16 mm
-
-Camera poses are the *reported* ones (with calibration error), the only poses a real
-robot would have; the camera frame is the optical frame (x right, y down, z forward).
+Users of the original pipeline (Florence et al. 2018; layout in docs/background.md, section
+"Self-supervised DON training") can read our data with their loaders: :func:`export_scene_pdc`.
 """
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import cv2
@@ -29,9 +15,25 @@ import yaml
 from don_gym.dataset import DONDataset, frame_path
 from don_gym.errors import DatasetError
 from don_gym.geometry import pose_from_transform
-from don_gym.io import atomic_path, write_text_atomic
+from don_gym.io import write_bytes_atomic, write_png, write_text_atomic
 
 EXPORT_FORMATS = ("pdc",)
+
+
+def _checked_png(path: Path, shape: tuple[int, ...], dtype: type) -> tuple[bytes, np.ndarray]:
+    """The bytes and pixels of PNG ``path``; DatasetError unless it decodes to ``shape`` and ``dtype``."""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: missing; the scene is damaged (rebuild it: delete the scene and resume)") from None
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
+    if image is None:
+        raise DatasetError(f"{path}: not a readable PNG (empty, truncated or corrupt); the scene is damaged")
+    if image.shape != shape or image.dtype != dtype:
+        raise DatasetError(
+            f"{path}: a {image.dtype} image of shape {image.shape}; expected {np.dtype(dtype)} of shape {shape}"
+        )
+    return data, image
 
 
 def _pose_entry(T_world_camera: np.ndarray) -> dict:
@@ -46,7 +48,20 @@ def _pose_entry(T_world_camera: np.ndarray) -> dict:
 
 
 def export_scene_pdc(dataset: DONDataset, scene: int, out_dir: str | Path) -> Path:
-    """Write scene number ``scene`` (position in ``dataset.scenes``) in the pdc layout.
+    """Write scene number ``scene`` (position in ``dataset.scenes``) in the pdc layout::
+
+        OUT/<scene name>/processed/
+          images/000000_rgb.png          RGB, uint8
+          images/000000_depth.png        sensor depth, uint16 millimetres, 0 = no return
+          images/pose_data.yaml          {idx: {camera_to_world: {translation: {x, y, z},
+                                                 quaternion: {w, x, y, z}}, ...}}
+          images/camera_info.yaml        {camera_matrix: {rows, cols, data (row-major 3x3)},
+                                          image_width, image_height, width, height}
+          image_masks/000000_mask.png    object mask, uint8 0/1 (from the fused model, as there)
+          rendered_images/000000_depth.png   fused depth re-rendered per frame, uint16 mm
+
+    Camera poses are the *reported* ones (with calibration error), the only poses a real robot
+    would have; the camera frame is the optical frame (x right, y down, z forward).
 
     Returns the scene's output directory. Raises DatasetError for an unknown scene.
     """
@@ -56,22 +71,32 @@ def export_scene_pdc(dataset: DONDataset, scene: int, out_dir: str | Path) -> Pa
     processed = Path(out_dir) / record.path.name / "processed"
     images = processed / "images"
     intrinsics = record.intrinsics
+    size = (intrinsics.height, intrinsics.width)
+    # Check every image of the scene before writing any: a damaged dataset is refused, naming the
+    # file, instead of exported as files the other code cannot read.
+    files: dict[Path, bytes | np.ndarray] = {}
     poses = {}
     for frame in range(record.num_frames):
         name = f"{frame:06d}"
-        with atomic_path(images / f"{name}_rgb.png") as tmp:
-            shutil.copyfile(frame_path(record.path, "rgb", frame), tmp)
-        with atomic_path(images / f"{name}_depth.png") as tmp:
-            shutil.copyfile(frame_path(record.path, "depth", frame), tmp)
+        rgb_path, depth_path = frame_path(record.path, "rgb", frame), frame_path(record.path, "depth", frame)
+        files[images / f"{name}_rgb.png"] = _checked_png(rgb_path, (*size, 3), np.uint8)[0]
+        files[images / f"{name}_depth.png"] = _checked_png(depth_path, size, np.uint16)[0]
         fused_depth_path = frame_path(record.path, "depth_fused", frame)
         if fused_depth_path.exists():
-            with atomic_path(processed / "rendered_images" / f"{name}_depth.png") as tmp:
-                shutil.copyfile(fused_depth_path, tmp)
-        mask_kind = "mask_fused" if frame_path(record.path, "mask_fused", frame).exists() else "mask"
-        mask = dataset.image(scene, frame, mask_kind)
-        with atomic_path(processed / "image_masks" / f"{name}_mask.png") as tmp:
-            cv2.imwrite(str(tmp), mask.astype(np.uint8))
+            files[processed / "rendered_images" / f"{name}_depth.png"] = _checked_png(
+                fused_depth_path, size, np.uint16
+            )[0]
+        mask_path = frame_path(record.path, "mask_fused", frame)
+        if not mask_path.exists():
+            mask_path = frame_path(record.path, "mask", frame)
+        mask = _checked_png(mask_path, size, np.uint8)[1]
+        files[processed / "image_masks" / f"{name}_mask.png"] = (mask > 127).astype(np.uint8)
         poses[frame] = _pose_entry(record.T_world_camera_reported[frame])
+    for path, content in files.items():
+        if isinstance(content, bytes):
+            write_bytes_atomic(path, content)
+        else:
+            write_png(path, content)
     camera_info = {
         "camera_matrix": {"rows": 3, "cols": 3, "data": [float(v) for v in intrinsics.K.ravel()]},
         "image_width": intrinsics.width,

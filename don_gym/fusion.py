@@ -1,17 +1,8 @@
 """Depth fusion of a scene: a TSDF volume, depth re-rendering and object masks from the fused model.
 
-The original DON pipeline (NOTES.md section 5) fuses all depth frames of a scene into a
-truncated signed distance function (TSDF, Curless & Levoy 1996 / KinectFusion), re-renders
-depth for every frame from the fused surface, and takes object masks from the fused
-model. That fills single-frame holes and averages noise, but over-smooths small objects;
-keeping both this path and the ideal-depth path lets the benchmark measure the effect.
-
-The volume is a dense axis-aligned voxel grid in the world frame. Each voxel stores the
-projective signed distance to the surface along the camera's optical axis, truncated to
-``[-truncation_m, truncation_m]`` and divided by it (so values lie in [-1, 1], positive in
-front of the surface), and the accumulated weight; weight 0 means never observed.
-Everything is vectorised numpy: integration projects all voxel centres of a slab into
-the frame at once; rendering marches all pixel rays together.
+The original DON pipeline's depth preprocessing for self-supervised training (docs/background.md,
+section "TSDF fusion"): :func:`fuse_scene` builds a :class:`TSDFVolume`, :func:`fused_object_masks`
+re-renders its depth per frame and takes the object masks from it. Vectorised numpy throughout.
 """
 
 from __future__ import annotations
@@ -68,6 +59,10 @@ def _any_per_row(flags: np.ndarray) -> np.ndarray:
 
 class TSDFVolume:
     """A dense TSDF voxel grid over the world-frame box ``[bounds_min, bounds_max]``.
+
+    Each voxel stores the projective signed distance to the surface along the camera's optical
+    axis, truncated to ``[-truncation_m, truncation_m]`` and divided by it (positive in front of
+    the surface), and the accumulated weight.
 
     Args:
         bounds_min, bounds_max: (3,) corners of the volume in world metres.

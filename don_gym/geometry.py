@@ -1,15 +1,9 @@
 """Rigid transforms, quaternions and pinhole cameras as plain functions on arrays.
 
-Conventions used everywhere in don_gym:
-
-- ``T_a_b`` is a (4, 4) homogeneous transform that maps points expressed in frame
-  ``b`` into frame ``a``: ``p_a = T_a_b @ p_b``. So ``T_world_camera`` is the camera
-  pose in the world (camera-to-world), ``T_camera_object`` the object pose seen from
-  the camera.
-- Camera frames follow OpenCV: x right, y down, z forward (optical axis), metres.
-- Quaternions are ``(x, y, z, w)``, PyBullet's order, unless a name says ``wxyz``.
-- Pixel coordinates are ``(u, v)`` = (column, row); pixel centres sit at integer
-  coordinates, so pixel ``(u, v)`` covers ``[u - 0.5, u + 0.5)``.
+Conventions used everywhere in don_gym: ``T_a_b`` (4, 4) maps points in frame ``b`` into frame ``a``
+(``p_a = T_a_b @ p_b``; ``T_world_camera`` is the camera pose); camera frames follow OpenCV (x right,
+y down, z forward, metres); quaternions are ``(x, y, z, w)``, PyBullet's order, unless a name says
+``wxyz``; pixels are ``(u, v)`` = (column, row), pixel ``(u, v)`` covering ``[u - 0.5, u + 0.5)``.
 """
 
 from __future__ import annotations

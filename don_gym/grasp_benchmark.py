@@ -1,32 +1,13 @@
 """Grasp-and-place benchmark: the paper's robot experiment in simulation, plus a depth-sensor sweep.
 
-Kupcsik et al. 2021 ("Experiment setup") grasp the toolcap at 8 fixed poses with each trained
-DON through a two-descriptor axis grasp and count the outcomes ``fail`` (part not lifted),
-``grasp only`` (lifted, but dropped or placed with the wrong orientation) and ``grasp & place``.
-Here every episode is ``env.reset(seed, options={"pose_id": k})`` of the grasp-mode env
-(:class:`don_gym.sim.env.PickPlaceEnv`, ``control="grasp"``) and one step with the action of an
-:class:`~don_gym.agents.AxisGraspAgent` built for the method (``"oracle"``, a shipped network
-name or a checkpoint path).
-
-Repeats differ only by the episode seed, which draws the depth-sensor noise and the hand-eye
-calibration error of the episode: ``seed = SeedSequence([benchmark seed, pose_id, repeat])``.
-Every method and sensor sees the same seeds (a paired comparison), and an episode's result
-depends on nothing else, so any number of worker processes gives the same results.
-
-Sensors: preset names (``ideal``, ``d435``, ``d435-clean``, ``kinect``) or ``NAME@SEVERITY``,
-the preset scaled towards the ideal sensor by :func:`don_gym.sim.sensor.scaled_sensor`
-(``d435@0.5``: half the D435's noise, dropout and calibration error). The last sensor listed is
-the headline one (the outcome table and bar chart, the paper's figure; the paper's camera is a
-D435); with several sensors a sweep table and chart show how each method degrades from ideal
-depth to the D435, the experiment the paper could not run on hardware.
-
-Per episode the record holds the outcome and the agent's grasp error against the true pose
-(:meth:`~don_gym.sim.env.PickPlaceEnv.oracle_action`): position error of the grasp point and
-the error of the +axis yaw (near 180 degrees: the part grasped "upside down").
+Kupcsik et al. 2021 ("Experiment setup") grasp the toolcap at 8 fixed poses with each trained DON
+through a two-descriptor axis grasp and count the outcomes; :func:`run_grasp_benchmark` does the same
+with an :class:`~don_gym.agents.AxisGraspAgent` per method, for each depth sensor of the sweep.
 """
 
 from __future__ import annotations
 
+import math
 import multiprocessing as mp
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -63,7 +44,12 @@ class GraspBenchmarkConfig:
         methods: ``"oracle"``, shipped network names or checkpoint paths.
         poses: fixed pose ids (0..7).
         repeats: episodes per (method, pose, sensor), with different seeds.
-        sensors: sensor specs (module docstring); the last is the headline sensor.
+        random_poses: seeded random poses evaluated beyond the fixed ones (0: none), one episode each
+            per method and sensor, reported apart (:func:`random_pose_seed`).
+        sensors: sensor specs (:func:`parse_sensor`); the last is the headline sensor (the outcome
+            table and bar chart, the paper's figure; the paper's camera is a D435). With several,
+            a sweep table and chart show how each method degrades from ideal depth to the D435,
+            the experiment the paper could not run on hardware.
         image_size: wrist-camera (width, height) in pixels; None: the size the networks among
             ``methods`` were trained at (they must agree), :data:`DEFAULT_IMAGE_SIZE` for the oracle alone.
         renderer: PyBullet renderer of the camera images.
@@ -74,6 +60,7 @@ class GraspBenchmarkConfig:
     methods: tuple[str, ...] = ("oracle",)
     poses: tuple[int, ...] = tuple(range(len(FIXED_POSES)))
     repeats: int = 3
+    random_poses: int = 0
     sensors: tuple[str, ...] = DEFAULT_SENSORS
     image_size: tuple[int, int] | None = None
     renderer: str = "tiny"
@@ -87,8 +74,10 @@ class GraspBenchmarkConfig:
         bad = [p for p in self.poses if not (isinstance(p, (int, np.integer)) and 0 <= p < len(FIXED_POSES))]
         if bad or not self.poses:
             raise DonGymError(f"poses {list(self.poses)}: expected pose ids 0..{len(FIXED_POSES) - 1}")
-        if self.repeats < 1:
-            raise DonGymError(f"repeats={self.repeats}: expected at least 1")
+        for name, minimum in (("repeats", 1), ("random_poses", 0), ("seed", 0)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+                raise DonGymError(f"{name}={value!r}: expected an integer >= {minimum}")
         if not self.sensors or len(set(self.sensors)) != len(self.sensors):
             raise DonGymError(f"sensors {list(self.sensors)}: expected at least one, each once")
         for spec in self.sensors:
@@ -98,6 +87,10 @@ class GraspBenchmarkConfig:
         check_renderer(self.renderer)
         if self.image_size is None:
             return
+        size = self.image_size
+        pair = isinstance(size, (tuple, list)) and len(size) == 2
+        if not pair or not all(isinstance(v, (int, np.integer)) for v in size):
+            raise DonGymError(f"image_size={size!r}: expected (width, height) in pixels or None")
         width, height = self.image_size
         if not (16 <= width <= 1280 and 16 <= height <= 960):
             raise DonGymError(f"image size {width}x{height} is out of range; expected 16x16 to 1280x960")
@@ -121,7 +114,12 @@ def default_methods(object_name: str) -> tuple[str, ...]:
 
 
 def parse_sensor(spec: str):  # -> don_gym.sim.sensor.SensorModel
-    """A sensor spec (preset name or ``NAME@SEVERITY``) as a SensorModel; DonGymError if malformed."""
+    """A sensor spec as a SensorModel; DonGymError if malformed.
+
+    Specs are preset names (``ideal``, ``d435``, ``d435-clean``, ``kinect``) or ``NAME@SEVERITY``,
+    the preset scaled towards the ideal sensor by :func:`don_gym.sim.sensor.scaled_sensor`
+    (``d435@0.5``: half the D435's noise, dropout and calibration error).
+    """
     from don_gym.sim.sensor import get_sensor, scaled_sensor
 
     name, at, severity = str(spec).partition("@")
@@ -130,33 +128,73 @@ def parse_sensor(spec: str):  # -> don_gym.sim.sensor.SensorModel
     try:
         value = float(severity)
     except ValueError:
-        raise DonGymError(f"sensor {spec!r}: expected NAME@SEVERITY with a severity in [0, 1], e.g. d435@0.5") from None
+        value = math.nan
+    if not 0.0 <= value <= 1.0:
+        raise DonGymError(f"sensor {spec!r}: expected NAME@SEVERITY; the severity must be in [0, 1], e.g. d435@0.5")
     return scaled_sensor(get_sensor(name), value)
 
 
 def episode_seed(seed: int, pose_id: int, repeat: int) -> int:
-    """Seed of one episode; the same for every method and sensor."""
+    """Seed of one episode, ``SeedSequence([seed, pose_id, repeat])``; the same for every method and sensor.
+
+    Repeats differ only by this seed, which draws the depth-sensor noise and the hand-eye calibration
+    error of the episode. Every method and sensor sees the same seeds (a paired comparison), and an
+    episode's result depends on nothing else, so any number of worker processes gives the same results.
+    """
     return int(np.random.SeedSequence([int(seed), int(pose_id), int(repeat)]).generate_state(1)[0])
+
+
+#: Second entropy word of :func:`random_pose_seed` (no fixed pose id is this large).
+RANDOM_POSE_STREAM = 0x52414E44
+#: The two sets of poses a result reports on: the paper's fixed poses (the headline) and the random ones.
+POSE_SETS = ("fixed", "random")
+
+
+def random_pose_seed(seed: int, index: int) -> int:
+    """Seed of random pose ``index``, ``SeedSequence([seed, RANDOM_POSE_STREAM, index])``.
+
+    ``env.reset(seed=...)`` without a ``pose_id`` draws the part's pose from this seed (then the sensor
+    noise and calibration error), so every method and sensor grasps the part at the same random poses;
+    the stream constant keeps them apart from the fixed poses' seeds.
+    """
+    return int(np.random.SeedSequence([int(seed), RANDOM_POSE_STREAM, int(index)]).generate_state(1)[0])
 
 
 @dataclass(frozen=True)
 class EpisodeTask:
+    """One episode: at fixed pose ``pose_id`` (``random_pose`` None) or at random pose ``random_pose``
+    (``pose_id`` None, ``repeat`` 0: the seed that draws the pose also draws the noise, so a repeat
+    would be another pose)."""
+
     sensor: str
     method: str
-    pose_id: int
+    pose_id: int | None
     repeat: int
     seed: int
+    random_pose: int | None = None
 
 
 def episode_tasks(config: GraspBenchmarkConfig) -> list[EpisodeTask]:
-    """All episodes, in the order of the results: sensor, method, pose, repeat."""
-    return [
-        EpisodeTask(sensor, method, int(pose), repeat, episode_seed(config.seed, pose, repeat))
-        for sensor in config.sensors
-        for method in config.methods
-        for pose in config.poses
-        for repeat in range(config.repeats)
-    ]
+    """All episodes, in the order of the results: sensor, method, then the fixed poses and their
+    repeats, then the random poses."""
+    tasks = []
+    for sensor in config.sensors:
+        for method in config.methods:
+            tasks += [
+                EpisodeTask(sensor, method, int(pose), repeat, episode_seed(config.seed, pose, repeat))
+                for pose in config.poses
+                for repeat in range(config.repeats)
+            ]
+            tasks += [
+                EpisodeTask(sensor, method, None, 0, random_pose_seed(config.seed, index), random_pose=index)
+                for index in range(config.random_poses)
+            ]
+    return tasks
+
+
+def pose_set(episode: dict[str, Any]) -> str:
+    """``"fixed"`` or ``"random"``: which of :data:`POSE_SETS` an episode record belongs to."""
+    return "fixed" if episode.get("random_pose") is None else "random"
 
 
 class EpisodeRunner:
@@ -189,7 +227,7 @@ class EpisodeRunner:
             from don_gym.agents import AxisGraspAgent
 
             env = self._env(sensor)
-            agent = AxisGraspAgent.for_env(env, model=method)
+            agent = AxisGraspAgent(env, model=method)
             self._agents[key] = (agent, agent.wrap(env))
         return self._agents[key]
 
@@ -199,9 +237,12 @@ class EpisodeRunner:
 
         start = time.perf_counter()
         agent, env = self._agent(task.sensor, task.method)
-        obs, _ = env.reset(seed=task.seed, options={"pose_id": task.pose_id})
+        options = None if task.random_pose is not None else {"pose_id": task.pose_id}
+        obs, _ = env.reset(seed=task.seed, options=options)
         true_action = env.unwrapped.oracle_action()
         record: dict[str, Any] = asdict(task)
+        # Where the part lay: grasp point (m) and +axis yaw (rad); tells the random poses apart.
+        record["true_action"] = [float(v) for v in true_action]
         try:
             action = np.asarray(agent.act(obs), dtype=np.float64)
         except DonGymError as exc:
@@ -238,8 +279,13 @@ _RUNNER: EpisodeRunner | None = None
 
 def _worker_init(config: GraspBenchmarkConfig) -> None:
     global _RUNNER  # one runner per worker process, kept for all its episodes
+    import signal
+
     import torch
 
+    # Ctrl-C reaches every process of the terminal's process group; the parent stops the pool, and a
+    # worker that took it too would print a traceback of its own.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     # The workers already fill the cores; more threads per worker only contend.
     torch.set_num_threads(1)
     _RUNNER = EpisodeRunner(config)
@@ -255,9 +301,12 @@ def _worker_run(indexed: tuple[int, EpisodeTask]) -> tuple[int, dict[str, Any]]:
 class GraspBenchmarkResult:
     """All episode records (in :func:`episode_tasks` order) and how long the run took.
 
-    Each record: ``sensor, method, pose_id, repeat, seed, outcome, lifted, agent_error``,
+    Each record: ``sensor, method, pose_id, repeat, seed, random_pose, true_action`` (the oracle's
+    ``[x, y, z, yaw]``: where the part lay), ``outcome, lifted, agent_error``,
     ``position_error_m`` (grasp point vs the true one), ``yaw_error_rad`` (|+axis yaw error|, in
     [0, pi]), ``flipped``, ``placement_axis_error_rad``, ``placement_distance_m``, ``seconds``.
+    The agent's errors are against the true pose (:meth:`~don_gym.sim.env.PickPlaceEnv.oracle_action`);
+    a yaw error near 180 degrees is the part grasped "upside down".
     """
 
     config: GraspBenchmarkConfig
@@ -270,46 +319,71 @@ class GraspBenchmarkResult:
     def headline_sensor(self) -> str:
         return self.config.sensors[-1]
 
-    def select(self, sensor: str, method: str) -> list[dict[str, Any]]:
-        return [e for e in self.episodes if e["sensor"] == sensor and e["method"] == method]
+    def select(self, sensor: str, method: str, poses: str = "fixed") -> list[dict[str, Any]]:
+        """The episodes of one sensor and method at the fixed or the random poses (:data:`POSE_SETS`)."""
+        return [e for e in self.episodes if e["sensor"] == sensor and e["method"] == method and pose_set(e) == poses]
 
-    def counts(self, sensor: str) -> dict[str, dict[str, int]]:
+    def episodes_per_cell(self, poses: str = "fixed") -> int:
+        """Episodes per (sensor, method) at the fixed or the random poses."""
+        return len(self.config.poses) * self.config.repeats if poses == "fixed" else self.config.random_poses
+
+    def counts(self, sensor: str, poses: str = "fixed") -> dict[str, dict[str, int]]:
         """``{method: {outcome: episodes}}`` for one sensor."""
         return {
-            method: {o: sum(e["outcome"] == o for e in self.select(sensor, method)) for o in OUTCOMES}
+            method: {o: sum(e["outcome"] == o for e in self.select(sensor, method, poses)) for o in OUTCOMES}
             for method in self.config.methods
         }
 
     def summary(self) -> dict[str, Any]:
+        """``results`` at the fixed poses (the paper's experiment) and, with random poses, ``random_pose_results``;
+        per sensor and method the counts and their 95% Wilson intervals (:mod:`don_gym.stats`)."""
+        from don_gym.stats import wilson_interval
+
         out: dict[str, Any] = {
             "config": asdict(self.config),
             "headline_sensor": self.headline_sensor,
-            "episodes_per_cell": len(self.config.poses) * self.config.repeats,
+            "episodes_per_cell": self.episodes_per_cell("fixed"),
+            "random_pose_episodes_per_cell": self.episodes_per_cell("random"),
             "seconds": self.seconds,
             "workers": self.workers,
             "methods": self.method_info,
-            "results": {},
         }
-        for sensor in self.config.sensors:
-            per_method = {}
-            for method in self.config.methods:
-                episodes = self.select(sensor, method)
-                position = [e["position_error_m"] for e in episodes if e["position_error_m"] is not None]
-                yaw = [e["yaw_error_rad"] for e in episodes if e["yaw_error_rad"] is not None]
-                per_method[method] = {
-                    "counts": {o: sum(e["outcome"] == o for e in episodes) for o in OUTCOMES},
-                    "grasped": sum(e["outcome"] != "fail" for e in episodes),
-                    "flipped": sum(bool(e["flipped"]) for e in episodes),
-                    "agent_errors": sum(e["agent_error"] is not None for e in episodes),
-                    "median_position_error_mm": float(np.median(position) * 1000.0) if position else None,
-                    "median_yaw_error_deg": float(np.degrees(np.median(yaw))) if yaw else None,
-                }
-            out["results"][sensor] = per_method
+        for poses, key in (("fixed", "results"), ("random", "random_pose_results")):
+            if poses == "random" and not self.config.random_poses:
+                continue
+            out[key] = {}
+            for sensor in self.config.sensors:
+                per_method = {}
+                for method in self.config.methods:
+                    episodes = self.select(sensor, method, poses)
+                    position = [e["position_error_m"] for e in episodes if e["position_error_m"] is not None]
+                    yaw = [e["yaw_error_rad"] for e in episodes if e["yaw_error_rad"] is not None]
+                    counts = {o: sum(e["outcome"] == o for e in episodes) for o in OUTCOMES}
+                    grasped = sum(e["outcome"] != "fail" for e in episodes)
+                    per_method[method] = {
+                        "counts": counts,
+                        "grasped": grasped,
+                        "interval_95": {
+                            name: list(wilson_interval(count, len(episodes)))
+                            for name, count in (*counts.items(), ("grasped", grasped))
+                        },
+                        "flipped": sum(bool(e["flipped"]) for e in episodes),
+                        "agent_errors": sum(e["agent_error"] is not None for e in episodes),
+                        "median_position_error_mm": float(np.median(position) * 1000.0) if position else None,
+                        "median_yaw_error_deg": float(np.degrees(np.median(yaw))) if yaw else None,
+                    }
+                out[key][sensor] = per_method
         return out
 
 
 def run_grasp_benchmark(config: GraspBenchmarkConfig, workers: int = 2, progress: bool = True) -> GraspBenchmarkResult:
     """Run every episode of ``config`` on ``workers`` processes (1: in this process).
+
+    An episode is ``env.reset(seed, options={"pose_id": k})`` (a random pose: ``env.reset(seed)``) of the grasp-mode env
+    (:class:`don_gym.sim.env.PickPlaceEnv`, ``control="grasp"``) and one step with the action of an
+    :class:`~don_gym.agents.AxisGraspAgent` built for the method (``"oracle"``, a shipped network
+    name or a checkpoint path). Outcomes: ``fail`` (part not lifted), ``grasp only`` (lifted, but
+    dropped or placed with the wrong orientation) and ``grasp & place``.
 
     Every method is loaded once here first, so a wrong name or a network for another object fails
     before any episode runs.
@@ -317,8 +391,8 @@ def run_grasp_benchmark(config: GraspBenchmarkConfig, workers: int = 2, progress
     config.validate()
     if workers < 1:
         raise DonGymError(f"workers={workers}: expected at least 1")
+    from don_gym.descriptor_sources import load_descriptor_source
     from don_gym.objects import load_object
-    from don_gym.wrappers import load_descriptor_source
 
     object_model = load_object(config.object)
     method_info = {}
@@ -370,15 +444,33 @@ def _median_text(value: float | None, digits: int = 1) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
-def outcome_table(result: GraspBenchmarkResult, sensor: str | None = None) -> str:
-    """Markdown: per method the outcome counts for one sensor (default: the headline sensor)."""
+def _summary_of(result: GraspBenchmarkResult, poses: str) -> dict[str, Any]:
+    if poses not in POSE_SETS:
+        raise DonGymError(f"poses={poses!r}: expected one of {list(POSE_SETS)}")
+    summary = result.summary()
+    if poses == "random" and "random_pose_results" not in summary:
+        raise DonGymError("this result has no random poses (GraspBenchmarkConfig.random_poses=0)")
+    return summary["results" if poses == "fixed" else "random_pose_results"]
+
+
+def _poses_text(result: GraspBenchmarkResult, poses: str) -> str:
+    if poses == "fixed":
+        return f"{len(result.config.poses)} fixed poses x {result.config.repeats} repeats"
+    return f"{result.config.random_poses} random poses seeded from the benchmark seed, 1 episode each"
+
+
+def outcome_table(result: GraspBenchmarkResult, sensor: str | None = None, poses: str = "fixed") -> str:
+    """Markdown: per method the outcome counts for one sensor (default: the headline sensor) at the
+    fixed or the random poses, each rate with its 95% Wilson interval."""
+    from don_gym.stats import format_rate
+
     sensor = result.headline_sensor if sensor is None else sensor
-    summary = result.summary()["results"][sensor]
-    total = len(result.config.poses) * result.config.repeats
+    summary = _summary_of(result, poses)[sensor]
+    total = result.episodes_per_cell(poses)
     width, height = result.config.image_size
     lines = [
-        f"Sensor `{sensor}`, {width}x{height} wrist camera, {len(result.config.poses)} poses x "
-        f"{result.config.repeats} repeats = {total} episodes per method.",
+        f"Sensor `{sensor}`, {width}x{height} wrist camera, {_poses_text(result, poses)} = {total} episodes "
+        "per method; rates with their 95% Wilson interval.",
         "",
         "| method | grasp & place | grasp only | fail | grasped | flipped +axis "
         "| median grasp position error (mm) | median yaw error (deg) |",
@@ -386,40 +478,45 @@ def outcome_table(result: GraspBenchmarkResult, sensor: str | None = None) -> st
     ]
     for method, s in summary.items():
         c = s["counts"]
+        rates = [format_rate(n, total) for n in (c["grasp_and_place"], c["grasp_only"], c["fail"], s["grasped"])]
         lines.append(
-            f"| {method} | {c['grasp_and_place']}/{total} | {c['grasp_only']}/{total} | {c['fail']}/{total} "
-            f"| {s['grasped']}/{total} | {s['flipped']} | {_median_text(s['median_position_error_mm'])} "
+            f"| {method} | " + " | ".join(rates) + f" | {s['flipped']} | {_median_text(s['median_position_error_mm'])} "
             f"| {_median_text(s['median_yaw_error_deg'])} |"
         )
     return "\n".join(lines)
 
 
-def sweep_table(result: GraspBenchmarkResult) -> str:
-    """Markdown: per method and sensor, ``grasp & place / grasped`` out of the episodes per cell."""
-    summary = result.summary()["results"]
+def sweep_table(result: GraspBenchmarkResult, poses: str = "fixed") -> str:
+    """Markdown: per method and sensor, ``grasp & place / grasped`` out of the episodes per cell at the
+    fixed or the random poses, each with its 95% Wilson interval."""
+    from don_gym.stats import format_interval
+
+    summary = _summary_of(result, poses)
     sensors = list(result.config.sensors)
-    total = len(result.config.poses) * result.config.repeats
+    total = result.episodes_per_cell(poses)
     lines = [
-        f"Cells: grasp & place / grasped, out of {total} episodes.",
+        f"Cells: grasp & place / grasped, out of {total} episodes ({_poses_text(result, poses)}), "
+        "each with its 95% Wilson interval.",
         "",
         "| method | " + " | ".join(f"`{s}`" for s in sensors) + " |",
         "|---|" + "---|" * len(sensors),
     ]
     for method in result.config.methods:
-        cells = [
-            f"{summary[s][method]['counts']['grasp_and_place']} / {summary[s][method]['grasped']}" for s in sensors
-        ]
+        cells = []
+        for sensor in sensors:
+            place, grasped = summary[sensor][method]["counts"]["grasp_and_place"], summary[sensor][method]["grasped"]
+            cells.append(f"{place} ({format_interval(place, total)}) / {grasped} ({format_interval(grasped, total)})")
         lines.append(f"| {method} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
 def write_grasp_outputs(result: GraspBenchmarkResult, out_dir: str | Path) -> dict[str, Path]:
     """Write ``grasp_episodes.json`` (summary and every episode), ``grasp.md`` (tables),
-    ``grasp_outcomes.png`` (headline sensor, one bar per method) and, with several sensors,
-    ``grasp_sweep.png``."""
+    ``grasp_outcomes.png`` (headline sensor, one bar per method), with several sensors
+    ``grasp_sweep.png``, and with random poses ``grasp_outcomes_random.png``."""
     import json
 
-    from don_gym import plots
+    from don_gym import plotting
     from don_gym.io import write_text_atomic
 
     out = Path(out_dir)
@@ -431,20 +528,30 @@ def write_grasp_outputs(result: GraspBenchmarkResult, out_dir: str | Path) -> di
     tables = "### Outcomes\n\n" + outcome_table(result)
     if len(result.config.sensors) > 1:
         tables += "\n\n### Depth-sensor sweep\n\n" + sweep_table(result)
+    if result.config.random_poses:
+        tables += "\n\n### Outcomes at random poses\n\n" + outcome_table(result, poses="random")
+        if len(result.config.sensors) > 1:
+            tables += "\n\n### Depth-sensor sweep at random poses\n\n" + sweep_table(result, poses="random")
     write_text_atomic(paths["table"], tables + "\n")
     sensor = result.headline_sensor
-    paths["outcomes"] = plots.plot_outcome_bars(
+    paths["outcomes"] = plotting.plot_outcome_bars(
         result.counts(sensor),
         out / "grasp_outcomes.png",
         title=f"{result.config.object}: {len(result.config.poses)} poses x {result.config.repeats} repeats, "
         f"sensor {sensor}",
     )
     if len(result.config.sensors) > 1:
-        paths["sweep"] = plots.plot_sweep(
+        paths["sweep"] = plotting.plot_sweep(
             {s: result.counts(s) for s in result.config.sensors},
             out / "grasp_sweep.png",
             title=f"{result.config.object}: depth-sensor sweep, {len(result.config.poses)} poses x "
             f"{result.config.repeats} repeats",
+        )
+    if result.config.random_poses:
+        paths["outcomes_random"] = plotting.plot_outcome_bars(
+            result.counts(sensor, "random"),
+            out / "grasp_outcomes_random.png",
+            title=f"{result.config.object}: {result.config.random_poses} random poses, sensor {sensor}",
         )
     return paths
 

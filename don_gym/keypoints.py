@@ -1,32 +1,9 @@
 """Keypoints from descriptor images: matching, robust depth and 3D points (pure array functions).
 
 A *keypoint* is a reference descriptor ``d`` (D,) tracked in a descriptor image (H, W, D): its
-best-matching pixel, the 3D point there from the depth image, and a match confidence. This is
-the DON way of finding a point on an object (Florence et al. 2018; Kupcsik et al. 2021, "Grasp
-Pose Prediction"); :mod:`don_gym.wrappers` runs it on every observation and
-:mod:`don_gym.agents` turns two keypoints into an axis grasp.
-
-Matching (:func:`best_match`, :func:`soft_match`):
-
-- the *best match* is the pixel of smallest Euclidean descriptor distance (ties: the first pixel
-  in row-major order), as in the original DON evaluation;
-- the *soft match* refines it to the weighted mean pixel of a disc of ``window_px`` pixels
-  around the best match, weights ``exp(-(d^2 - d_best^2) / temperature^2)``. Why: on a part with a
-  symmetry axis the optimal (GISIF) descriptors are equal all around a ring about the axis, so
-  the whole visible arc of that ring matches equally well and the best match is an arbitrary
-  pixel of it, anywhere across the part. The weighted mean of the arc is its middle, the pixel
-  over the axis, which is what a grasp needs.
-
-Depth (:func:`robust_depth`): metal parts give holes (zero depth) in the stereo depth. The depth
-of a keypoint is the median of the valid depths (> 0, finite) in a square window of radius
-``min_radius_px`` around its pixel, the window grown one pixel at a time up to
-``max_radius_px`` until it holds a valid depth. No valid depth within ``max_radius_px``: depth
-0 and ``valid`` False (the point is then the camera centre).
-
-Units: pixels are ``(u, v)`` = (column, row) with pixel centres at integers; depth and points in
-metres; descriptor distances in descriptor units (the optimal descriptors span [0, 1] per
-dimension). Frames: camera frame is OpenCV (see :mod:`don_gym.geometry`), ``T_world_camera``
-maps camera-frame points to the world.
+best-matching pixel, the 3D point there from the depth image, and a match confidence
+(:func:`locate_keypoints`), the DON way of finding a point on an object (Florence et al. 2018;
+Kupcsik et al. 2021, "Grasp Pose Prediction"). Units and frames as in :mod:`don_gym.geometry`.
 """
 
 from __future__ import annotations
@@ -118,7 +95,8 @@ def _best_from_distances(distances: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 
 def best_match(descriptor_image: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel of smallest descriptor distance for each reference descriptor.
+    """Pixel of smallest Euclidean descriptor distance for each reference descriptor, as in the
+    original DON evaluation.
 
     Args:
         descriptor_image: (H, W, D) descriptors.
@@ -160,7 +138,14 @@ def soft_match(
     window_px: float | np.ndarray,
     temperature: float = DEFAULT_SOFT_TEMPERATURE,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Best match refined to the descriptor-weighted mean pixel around it (see the module docstring).
+    """Best match refined to the descriptor-weighted mean pixel around it.
+
+    The mean over a disc of ``window_px`` pixels around the best match, weights
+    ``exp(-(d^2 - d_best^2) / temperature^2)``. Why: on a part with a symmetry axis the optimal
+    (GISIF) descriptors are equal all around a ring about the axis, so the whole visible arc of
+    that ring matches equally well and the best match is an arbitrary pixel of it, anywhere across
+    the part. The weighted mean of the arc is its middle, the pixel over the axis, which is what a
+    grasp needs.
 
     Args:
         descriptor_image: (H, W, D) descriptors.
@@ -201,6 +186,10 @@ def robust_depth(
     max_radius_px: int = DEFAULT_MAX_RADIUS_PX,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Depth at pixels despite holes: median of the valid depths in a growing window.
+
+    Metal parts give holes (zero depth) in stereo depth. The depth of a pixel is the median of
+    the valid depths (> 0, finite) in a square window of radius ``min_radius_px`` around it, the
+    window grown one pixel at a time up to ``max_radius_px`` until it holds a valid depth.
 
     Args:
         depth_m: (H, W) depth in metres, 0 (or NaN/inf) where the sensor had no return.

@@ -1,12 +1,7 @@
 """Training losses of Dense Object Nets: the supervised l2 loss and the pixelwise contrastive loss.
 
-- :func:`supervised_l2_loss`: Kupcsik et al. 2021, eq. (l2loss): per image, the squared
-  error over object pixels divided by the object pixel count plus the squared error over
-  background pixels divided by the background pixel count, so a small object is not
-  drowned by its background; averaged over the batch.
-- :func:`pixelwise_contrastive_loss`: Florence et al. 2018 with unnormalised descriptors
-  and hard-negative scaling, as in the original code (see NOTES.md section 2).
-
+:func:`supervised_l2_loss` is Kupcsik et al. 2021, eq. (l2loss); :func:`pixelwise_contrastive_loss` is the
+loss of Florence et al. 2018 (docs/background.md, section "Self-supervised DON training").
 Pixel indices are ``(u, v)`` = (column, row), as everywhere in don_gym.
 """
 
@@ -73,7 +68,9 @@ def supervised_l2_loss_terms(
 def supervised_l2_loss(pred: torch.Tensor, target: torch.Tensor, object_mask: torch.Tensor) -> torch.Tensor:
     """The paper's l2 loss (eq. l2loss), averaged over the batch: a scalar tensor.
 
-    See :func:`supervised_l2_loss_terms` for shapes; use it to log the two terms.
+    Per image, the object term plus the background term, each normalised by its pixel count so
+    that a small object is not drowned by its background. See :func:`supervised_l2_loss_terms`
+    for shapes; use it to log the two terms.
     """
     object_term, background_term = supervised_l2_loss_terms(pred, target, object_mask)
     return (object_term + background_term).mean()
@@ -124,7 +121,8 @@ def pixelwise_contrastive_loss(
     background_margin: float = DEFAULT_BACKGROUND_MARGIN,
     hard_negative_scaling: bool = True,
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Pixelwise contrastive loss of one image pair (Florence et al. 2018).
+    """Pixelwise contrastive loss of one image pair (Florence et al. 2018), with unnormalised
+    descriptors and hard-negative scaling as in the original code.
 
     Args:
         descriptors_a, descriptors_b: ``(D, H, W)`` unnormalised descriptor images.

@@ -1,12 +1,7 @@
 """The training methods don_gym compares, by canonical name (no torch import, so any stage can use it).
 
-- ``supervised``: l2 loss to the optimal geometric descriptor images (Kupcsik et al. 2021).
-- ``supervised-edge``: the same, with object-edge pixels blended towards the background
-  descriptor (view-dependent variant (a) of the paper).
-- ``supervised-mask``: first two geometric dimensions plus an object-mask channel as the
-  last one (variant (b), the paper's "mask" variant).
-- ``self-supervised``: the pixelwise contrastive loss of Florence et al. 2018 on
-  correspondences from depth.
+Three supervised methods train with the l2 loss of Kupcsik et al. 2021 towards optimal descriptor
+targets, ``self-supervised`` with the contrastive loss of Florence et al. 2018 (:data:`METHOD_DESCRIPTIONS`).
 """
 
 from __future__ import annotations
@@ -16,6 +11,8 @@ from don_gym.errors import DonGymError
 METHODS: tuple[str, ...] = ("supervised", "supervised-edge", "supervised-mask", "self-supervised")
 SUPERVISED_METHODS: tuple[str, ...] = ("supervised", "supervised-edge", "supervised-mask")
 
+#: What each method trains with; "supervised-edge" and "supervised-mask" use the paper's view-dependent
+#: variants (a) and (b) of the targets.
 METHOD_DESCRIPTIONS: dict[str, str] = {
     "supervised": "l2 loss to optimal geometric descriptor images",
     "supervised-edge": "l2 loss, object edges blended towards the background descriptor",

@@ -1,31 +1,14 @@
 """Dense Object Net: a fully convolutional ResNet that maps an RGB image to a descriptor image.
 
-As in the original DON (Florence et al. 2018): a ResNet encoder whose last two stages
-trade their stride for dilation (2 and 4), so the feature map has output stride 8; a 1x1
-convolution to ``D`` channels; bilinear upsampling back to the input size.
-
-Architectures (:data:`ARCHS`):
-
-- ``"resnet34"``: the paper's network (BasicBlock [3, 4, 6, 3], widths 64-512, 7x7 stem
-  and max-pool). Its encoder uses torchvision's ResNet parameter names, so ImageNet weights
-  saved in that layout load with ``pretrained_path=``.
-- ``"resnet18"``: same layout, BasicBlock [2, 2, 2, 2]; also loads torchvision weights.
-- ``"resnet-lite"`` (default, :data:`DEFAULT_ARCH`): BasicBlock [2, 2, 2, 2] with widths
-  (24, 48, 64, 96) and a stem of two stride-2 3x3 convolutions (16, 24 channels). At
-  output stride 8 the dilated stages run on 1/64 of the pixels of the input, so their cost
-  grows with width squared; the full-width ResNets spend most of their time there. The
-  lite widths keep a 320x240 frame under 30 ms on 2 CPU cores where resnet34 takes over
-  ten times as long (``benchmarks/bench_train.py``, RESULTS.md "train-speed"), while the
-  dilation keeps its receptive field at 431 px, more than a whole 320x240 frame; its
-  0.55 M parameters make a 2.2 MB float32 checkpoint, so shipped checkpoints stay small.
-  It has no ImageNet weights; it trains from scratch.
-
-Images enter as float RGB in [0, 1]; the ImageNet mean/std normalisation happens inside
-the model. Tensors are kept channels-last internally, which is faster with oneDNN on CPU.
+As in the original DON (docs/background.md, section "Self-supervised DON training"): a dilated ResNet
+encoder with output stride 8, a 1x1 convolution to ``D`` channels and bilinear upsampling back to the
+input size. :class:`DenseObjectNet` is the network, :data:`ARCHS` its encoder sizes.
 """
 
 from __future__ import annotations
 
+import pickle
+import re
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -60,6 +43,14 @@ class ArchSpec:
     description: str = field(default="", compare=False)
 
 
+#: Encoder sizes. ``"resnet34"`` is the paper's network (BasicBlock [3, 4, 6, 3], widths 64-512, 7x7 stem
+#: and max-pool), ``"resnet18"`` the same layout with [2, 2, 2, 2] blocks; both use torchvision's ResNet
+#: parameter names, so ImageNet weights in that layout load with ``pretrained_path=``. ``"resnet-lite"``
+#: (:data:`DEFAULT_ARCH`) has [2, 2, 2, 2] blocks of widths (24, 48, 64, 96) and a stem of two stride-2 3x3
+#: convolutions (16, 24 channels): at output stride 8 the dilated stages run on 1/64 of the input's pixels
+#: and their cost grows with width squared, so narrow stages keep CPU inference cheap (benchmarks/RESULTS.md,
+#: "train-speed") while the dilation keeps the receptive field at 431 px, more than a whole 320x240 frame.
+#: Its 0.55 M parameters make a 2.2 MB float32 checkpoint; it has no ImageNet weights and trains from scratch.
 ARCHS: dict[str, ArchSpec] = {
     "resnet-lite": ArchSpec(
         (2, 2, 2, 2), (24, 48, 64, 96), "fast", (16, 24), False, "CPU-sized ResNet, trains from scratch"
@@ -179,20 +170,42 @@ def _read_state_dict_file(path: Path) -> dict[str, torch.Tensor]:
         else:
             # weights_only: a .pth is a pickle; never execute code from a weights file.
             state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # any parse failure means a corrupt file
+    except pickle.UnpicklingError as exc:
+        global_name = re.search(r"Unsupported global: GLOBAL (\S+)", str(exc))
+        if global_name:
+            raise CheckpointError(
+                f"pretrained weights {path}: holds a pickled {global_name[1]}, not only tensors; expected a state "
+                "dict, e.g. torch.save(model.state_dict(), path)"
+            ) from None
         raise CheckpointError(
-            f"pretrained weights {path}: cannot be read as a state dict ({type(exc).__name__}: {exc})"
+            f"pretrained weights {path}: cannot be read as a state dict (not a torch or safetensors file, or damaged)"
+        ) from None
+    except Exception as exc:  # any other parse failure also means a damaged file
+        detail = (str(exc).strip().splitlines() or [""])[0]
+        raise CheckpointError(
+            f"pretrained weights {path}: cannot be read as a state dict ({type(exc).__name__}: {detail})"
         ) from exc
     if isinstance(state, dict) and isinstance(state.get("state_dict"), dict):
         state = state["state_dict"]
-    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-        raise CheckpointError(f"pretrained weights {path}: expected a dict of tensor names to tensors")
+    if not isinstance(state, dict):
+        raise CheckpointError(
+            f"pretrained weights {path}: expected a state dict (names to tensors), got a {type(state).__name__}"
+        )
+    not_tensor = next((k for k, v in state.items() if not isinstance(v, torch.Tensor)), None)
+    if not_tensor is not None:
+        raise CheckpointError(
+            f"pretrained weights {path}: expected a state dict of tensors, but {not_tensor!r} is a "
+            f"{type(state[not_tensor]).__name__}"
+        )
     # Weights saved from nn.DataParallel carry a "module." prefix.
     return {k.removeprefix("module."): v for k, v in state.items()}
 
 
 class DenseObjectNet(nn.Module):
     """Dense Object Net: ``(B, 3, H, W)`` RGB in [0, 1] -> ``(B, D, H, W)`` descriptors.
+
+    The ImageNet mean/std normalisation happens inside the model. Tensors are kept channels-last
+    internally, which suits oneDNN on CPU.
 
     Args:
         arch: a key of :data:`ARCHS`.

@@ -1,23 +1,18 @@
 """Object models: the built-in industrial parts and any mesh file a user brings.
 
-An :class:`ObjectModel` is a watertight-or-not triangle mesh in metres, expressed in
-the *object frame*, plus what the rest of don_gym needs to know about the part: its
-material (density for mass and inertia, friction, whether it is specular metal for
-the depth-sensor model), its symmetry axis and its "+axis" direction.
-
-Object frame of the built-ins: origin at the centre of mass, symmetry axis along z,
-"+axis" = +z. The toolcap's +axis points from the open end (bore) to the flange.
-
-Built-ins are generated procedurally by revolving a (radius, height) profile about z
-(:func:`trimesh.creation.revolve`), so they need no data files.
+An :class:`ObjectModel` is a triangle mesh in metres in the *object frame*, plus what the rest of
+don_gym needs to know about the part: its material, symmetry axis and "+axis" (:func:`load_object`).
 """
 
 from __future__ import annotations
 
 import hashlib
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import trimesh
@@ -26,6 +21,11 @@ from don_gym.errors import MeshError
 
 #: Density of steel in kg/m^3 (carbon steel 7.75-8.05 g/cm^3; 7.85 is the usual design value).
 STEEL_DENSITY_KG_M3 = 7850.0
+
+#: Relative tolerance of :meth:`ShapeSignature.differences`: each quantity may differ by this fraction of
+#: its size. Far above what single-precision mesh files (~1e-7) or other machines' arithmetic (~1e-12)
+#: change, far below a different part's geometry (a 0.1 mm longer 40 mm part changes its volume 2.5e-3).
+SHAPE_MATCH_RTOL = 1e-4
 
 #: Largest extent (metres) a mesh may have before ``scale=None`` assumes millimetres.
 #: Robot parts picked by a Panda are well under 1 m; a CAD export in millimetres of such
@@ -60,12 +60,90 @@ PLASTIC = Material("plastic", 1050.0, lateral_friction=0.9, specular=0.1, rgba=(
 MATERIALS = {m.name: m for m in (STEEL, PLASTIC)}
 
 
+@dataclass(frozen=True)
+class ShapeSignature:
+    """Identity of a part's geometry that depends neither on float bits, nor on vertex order, nor on where
+    the part sits in its file's frame (see docs/reliability.md, "Part identity").
+
+    Attributes:
+        n_vertices, n_faces: of the cleaned mesh (exact).
+        area_m2: surface area.
+        volume_m3: :attr:`ObjectModel.volume_m3`.
+        principal_moments_m5: the three principal moments of inertia at unit density, ascending.
+        radius_m: largest distance of a vertex from the centre of mass.
+
+    Mirror images share a signature; so do a part and its copy moved in its frame.
+    """
+
+    n_vertices: int
+    n_faces: int
+    area_m2: float
+    volume_m3: float
+    principal_moments_m5: tuple[float, float, float]
+    radius_m: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "n_vertices": self.n_vertices,
+            "n_faces": self.n_faces,
+            "area_m2": self.area_m2,
+            "volume_m3": self.volume_m3,
+            "principal_moments_m5": list(self.principal_moments_m5),
+            "radius_m": self.radius_m,
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], source: str = "shape signature") -> ShapeSignature:
+        """Parse :meth:`to_dict`'s output; MeshError naming ``source`` if it is not one."""
+        try:
+            moments = tuple(float(v) for v in data["principal_moments_m5"])
+            counts = [data["n_vertices"], data["n_faces"]]
+            if len(moments) != 3 or any(isinstance(c, bool) or not isinstance(c, int) or c < 1 for c in counts):
+                raise ValueError("expected 3 moments and positive integer counts")
+            return cls(
+                int(counts[0]), int(counts[1]), float(data["area_m2"]), float(data["volume_m3"]), moments,
+                float(data["radius_m"]),
+            )  # fmt: skip
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MeshError(f"{source}: not a shape signature ({type(exc).__name__}: {exc})") from exc
+
+    def differences(self, other: ShapeSignature, rtol: float = SHAPE_MATCH_RTOL) -> list[str]:
+        """What differs from ``other`` beyond ``rtol`` (counts: at all), as ``"name a vs b"``; empty: the same shape."""
+        out = [
+            f"{name} {a} vs {b}"
+            for name, a, b in (("vertices", self.n_vertices, other.n_vertices), ("faces", self.n_faces, other.n_faces))
+            if a != b
+        ]
+        largest_moment = max(max(self.principal_moments_m5), max(other.principal_moments_m5))
+        pairs = [
+            ("area_m2", self.area_m2, other.area_m2, max(abs(self.area_m2), abs(other.area_m2))),
+            ("volume_m3", self.volume_m3, other.volume_m3, max(abs(self.volume_m3), abs(other.volume_m3))),
+            ("radius_m", self.radius_m, other.radius_m, max(self.radius_m, other.radius_m)),
+        ] + [
+            (f"principal_moment_{i}_m5", a, b, largest_moment)
+            for i, (a, b) in enumerate(zip(self.principal_moments_m5, other.principal_moments_m5, strict=True))
+        ]
+        out += [f"{name} {a:.6g} vs {b:.6g}" for name, a, b, scale in pairs if abs(a - b) > rtol * scale]
+        return out
+
+
+def part_name(name_or_path: str | Path) -> str:
+    """The name don_gym records for a part wherever one is written or shown: a built-in's name, else the
+    mesh file's stem (``"parts/my_part.stl"`` -> ``"my_part"``), as :attr:`ObjectModel.name`."""
+    key = str(name_or_path)
+    return key if key in _BUILTINS else Path(key).expanduser().stem
+
+
 @dataclass(frozen=True, eq=False)
 class ObjectModel:
     """A rigid part: mesh in metres in the object frame plus its material and axes.
 
+    Object frame of the built-ins: origin at the centre of mass, symmetry axis along z, "+axis" = +z.
+    They are generated procedurally by revolving a (radius, height) profile about z
+    (:func:`trimesh.creation.revolve`), so they need no data files.
+
     Attributes:
-        name: short name (built-in name or the file stem).
+        name: short name (:func:`part_name`: the built-in name or the file stem).
         mesh: triangle mesh, vertices in metres, object frame.
         material: see :class:`Material`.
         symmetry_axis: (3,) unit vector of the rotational symmetry axis in the object
@@ -122,8 +200,24 @@ class ObjectModel:
 
     @property
     def mesh_hash(self) -> str:
-        """Short content hash of vertices and faces (identifies the geometry in files)."""
+        """Short content hash of the vertex and face bytes: tells this process's meshes apart (caches,
+        files written here), not parts across machines (:attr:`shape_signature` does that)."""
         return self._hash
+
+    @cached_property
+    def shape_signature(self) -> ShapeSignature:
+        """The part's geometric identity (:class:`ShapeSignature`), compared across machines and files."""
+        source = self.mesh if self.mesh.is_watertight else self.mesh.convex_hull
+        moments = np.linalg.eigvalsh(np.asarray(source.moment_inertia, dtype=np.float64))
+        radius = np.linalg.norm(np.asarray(self.mesh.vertices, dtype=np.float64) - self.center_of_mass, axis=1).max()
+        return ShapeSignature(
+            n_vertices=len(self.mesh.vertices),
+            n_faces=len(self.mesh.faces),
+            area_m2=float(self.mesh.area),
+            volume_m3=self.volume_m3,
+            principal_moments_m5=tuple(float(m) for m in np.sort(moments)),
+            radius_m=float(radius),
+        )
 
 
 def _finish(name: str, mesh: trimesh.Trimesh, material: Material, symmetry_axis, plus_axis, source: str) -> ObjectModel:
@@ -319,4 +413,4 @@ def load_object(
     if scale is not None:
         mesh.apply_scale(scale)
     axis = _principal_axis(mesh) if plus_axis is None else np.asarray(plus_axis, dtype=np.float64)
-    return _finish(path.stem, mesh, material, None, axis, str(path.resolve()))
+    return _finish(part_name(path), mesh, material, None, axis, str(path.resolve()))

@@ -1,14 +1,15 @@
-"""Figures of descriptor fields on meshes (matplotlib, Agg backend, no display needed).
+"""Every figure of don_gym: descriptor fields on meshes, tracking errors, grasp outcomes, loss and learning curves.
 
-:func:`plot_descriptor_field` draws the mesh coloured by each descriptor dimension with the hot
-colour map and by the RGB composite of the first three dimensions, from two opposite views,
-like the bunny and torus figures of Kupcsik et al. (AAAI 2021).
+Pure functions, arrays in and a file out, built on ``matplotlib.figure.Figure`` with the Agg canvas
+(no pyplot state, no display, safe in worker processes), written atomically; the format follows the
+file extension. matplotlib is imported inside the functions so that importing this module stays light.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import trimesh
@@ -17,10 +18,38 @@ from don_gym.errors import DonGymError
 from don_gym.io import atomic_path
 from don_gym.objects import ObjectModel
 
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
 #: Figure formats matplotlib writes from the file extension.
 PLOT_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
 #: Default views (elevation, azimuth) in degrees: one from above one end, one from below the other.
 DEFAULT_VIEWS = ((25.0, -60.0), (-25.0, 120.0))
+#: Labels and colours of the grasp outcomes (paper: fail / grasp only / grasp & place).
+OUTCOME_LABELS: dict[str, str] = {"fail": "fail", "grasp_only": "grasp only", "grasp_and_place": "grasp & place"}
+OUTCOME_COLORS: dict[str, str] = {"fail": "#d62728", "grasp_only": "#ffbf00", "grasp_and_place": "#2ca02c"}
+#: Bins per decade of the log-scale error histogram.
+BINS_PER_DECADE = 6
+
+
+def _new_figure(width_in: float, height_in: float, *, dpi: float | None = None, layout: str | None = None) -> Figure:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width_in, height_in), dpi=dpi, layout=layout)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig: Figure, path: str | Path, dpi: float | str = "figure") -> Path:
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format=path.suffix.lstrip(".") or "png", dpi=dpi)
+    return path
+
+
+# --- descriptor fields -------------------------------------------------------------------------------
 
 
 def _view_direction(elevation_deg: float, azimuth_deg: float) -> np.ndarray:
@@ -39,7 +68,8 @@ def plot_descriptor_field(
     views: Sequence[tuple[float, float]] = DEFAULT_VIEWS,
     dpi: int = 110,
 ) -> Path:
-    """Write a figure of ``mesh`` coloured by its descriptors; returns the path.
+    """Write a figure of ``mesh`` coloured by its descriptors, like the bunny and torus figures of
+    Kupcsik et al. (AAAI 2021); returns the path.
 
     Columns: each descriptor dimension (hot colour map, 0 black to 1 white) and the RGB composite of
     dimensions 1-3 (missing ones are 0). Rows: ``views`` as (elevation, azimuth) in degrees, with
@@ -57,9 +87,6 @@ def plot_descriptor_field(
         dpi: resolution.
     """
     import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     path = Path(path)
@@ -88,7 +115,7 @@ def plot_descriptor_field(
     low, high = vertices.min(axis=0), vertices.max(axis=0)
     center, half = (low + high) / 2, (high - low).max() / 2
 
-    fig = plt.figure(figsize=(3.0 * len(panels), 3.0 * len(views) + (0.4 if title else 0.0)), dpi=dpi)
+    fig = _new_figure(3.0 * len(panels), 3.0 * len(views) + (0.4 if title else 0.0), dpi=dpi)
     for row, (elevation, azimuth) in enumerate(views):
         toward_camera = _view_direction(elevation, azimuth)
         # Light from the camera, a little above and to the left, so that shading shows the shape.
@@ -114,7 +141,269 @@ def plot_descriptor_field(
     if title:
         fig.suptitle(title, fontsize=10)
     fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.92 if title else 0.95, wspace=0.0, hspace=0.0)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=dpi)
-    plt.close(fig)
-    return path
+    return _save(fig, path, dpi=dpi)
+
+
+# --- tracking errors (don_gym.evaluation) ------------------------------------------------------------
+
+
+def _finite_positive(values: np.ndarray, floor: float) -> np.ndarray:
+    values = np.asarray(values, dtype=np.float64)
+    return np.maximum(values[np.isfinite(values)], floor)
+
+
+def log_bins(samples: Sequence[np.ndarray], floor: float, per_decade: int = BINS_PER_DECADE) -> np.ndarray:
+    """Log-spaced bin edges covering all finite samples (values below ``floor`` count as ``floor``),
+    from a whole decade to a whole decade."""
+    finite = [_finite_positive(s, floor) for s in samples]
+    finite = [s for s in finite if len(s)]
+    if not finite:
+        return np.logspace(np.log10(floor), np.log10(floor) + 1, per_decade + 1)
+    low = np.floor(np.log10(min(s.min() for s in finite)))
+    high = max(np.ceil(np.log10(max(s.max() for s in finite))), low + 1)
+    return np.logspace(low, high, int(round((high - low) * per_decade)) + 1)
+
+
+def plot_error_histograms(
+    panels: Sequence[tuple[str, Mapping[str, np.ndarray], float]],
+    path: str | Path,
+    *,
+    title: str | None = None,
+) -> Path:
+    """The paper's tracking-error figure: per method the normalised histogram (fractions of its
+    matches, summing to 1) over log-spaced bins, stacked, with a log x axis; one panel per metric.
+
+    ``panels``: (x label, {method: values}, floor) triples; NaNs are skipped and values below
+    ``floor`` fall into the first bin.
+    """
+    fig = _new_figure(4.6 * len(panels) + 2.2, 3.8, dpi=110, layout="constrained")
+    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    for ax, (xlabel, by_method, floor) in zip(axes, panels, strict=True):
+        samples = [by_method[k] for k in by_method]
+        _stacked_histogram(ax, by_method, floor, log_bins(samples, floor), list(by_method))
+        ax.set_xlabel(xlabel)
+    axes[-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return _save(fig, path)
+
+
+def _stacked_histogram(
+    ax: Axes, by_method: Mapping[str, np.ndarray], floor: float, bins: np.ndarray, colour_order: Sequence[str]
+) -> None:
+    """Per method the normalised histogram over ``bins``, stacked, log x axis; a method's colour is
+    its place in ``colour_order``, so that it keeps its colour across panels."""
+    present = [(label, _finite_positive(values, floor)) for label, values in by_method.items()]
+    present = [(label, s) for label, s in present if len(s)]
+    if present:
+        ax.hist(
+            [s for _, s in present],
+            bins=bins,
+            weights=[np.full(len(s), 1.0 / len(s)) for _, s in present],
+            stacked=True,
+            color=[f"C{list(colour_order).index(label) % 10}" for label, _ in present],
+            label=[f"{label} (n={len(s)})" for label, s in present],
+            edgecolor="white",
+            linewidth=0.5,
+        )
+    ax.set_xscale("log")
+    ax.set_ylabel("fraction of matches (stacked per method)")
+    ax.grid(True, which="major", axis="x", alpha=0.3)
+
+
+def plot_tracking_error_histograms(
+    errors_by_object: Mapping[str, Mapping[str, np.ndarray]],
+    path: str | Path,
+    *,
+    xlabel: str = "3D tracking error (mm)",
+    floor: float = 0.1,
+    title: str | None = None,
+) -> Path:
+    """The paper's tracking figure for several objects in one picture: one panel per object (side by side,
+    same log-spaced bins and axes), in each the normalised error histogram of every method, stacked.
+
+    ``errors_by_object``: {object: {method: errors}}; a method keeps its colour in every panel, NaNs are
+    skipped and values below ``floor`` fall into the first bin.
+    """
+    objects = list(errors_by_object)
+    if not objects:
+        raise DonGymError("no objects to plot; expected {object: {method: errors}}")
+    methods = list(dict.fromkeys(m for by_method in errors_by_object.values() for m in by_method))
+    bins = log_bins([v for by_method in errors_by_object.values() for v in by_method.values()], floor)
+    fig = _new_figure(4.4 * len(objects) + 0.6, 4.0, dpi=110, layout="constrained")
+    axes = fig.subplots(1, len(objects), squeeze=False, sharex=True, sharey=True)[0]
+    for ax, name in zip(axes, objects, strict=True):
+        _stacked_histogram(ax, errors_by_object[name], floor, bins, methods)
+        ax.set_title(name, fontsize=10)
+        ax.set_xlabel(xlabel)
+        ax.legend(fontsize=7, loc="upper right")
+        ax.label_outer()
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return _save(fig, path)
+
+
+def _cdf(ax: Axes, values: np.ndarray, floor: float, label: str) -> None:
+    values = np.sort(_finite_positive(values, floor))
+    if len(values):
+        ax.step(values, np.arange(1, len(values) + 1) / len(values), where="post", label=label)
+
+
+def plot_cdfs(
+    panels: Sequence[tuple[str, Mapping[str, np.ndarray], float]],
+    path: str | Path,
+    *,
+    title: str | None = None,
+) -> Path:
+    """Empirical CDFs, one panel per metric with all methods in each, log x axes.
+
+    ``panels``: (x label, {method: values}, floor) triples; values below ``floor`` are drawn at it
+    (a log axis has no zero) and NaNs are skipped.
+    """
+    fig = _new_figure(4.2 * len(panels) + 2.2, 3.6, dpi=110, layout="constrained")
+    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    for ax, (xlabel, by_method, floor) in zip(axes, panels, strict=True):
+        for label, values in by_method.items():
+            _cdf(ax, values, floor, label)
+        ax.set_xscale("log")
+        ax.set_ylim(0.0, 1.0)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("fraction of matches")
+        ax.grid(True, which="both", alpha=0.25)
+    axes[-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return _save(fig, path)
+
+
+# --- grasp outcomes (don_gym.grasp_benchmark) --------------------------------------------------------
+
+
+def plot_outcome_bars(
+    counts_by_method: Mapping[str, Mapping[str, int]], path: str | Path, *, title: str | None = None
+) -> Path:
+    """One stacked bar per method with the number of episodes ending in each outcome
+    (bottom to top: grasp & place, grasp only, fail), like the paper's robot-experiment figure."""
+    from matplotlib.ticker import MaxNLocator
+
+    # Imported here: don_gym.sim.task pulls in PyBullet, which no other figure needs.
+    from don_gym.sim.task import OUTCOMES
+
+    labels = list(counts_by_method)
+    fig = _new_figure(max(4.0, 1.3 * len(labels) + 1.5), 3.8, dpi=110, layout="constrained")
+    ax = fig.add_subplot()
+    x = np.arange(len(labels))
+    bottom = np.zeros(len(labels))
+    for outcome in reversed(OUTCOMES):
+        heights = np.array([counts_by_method[k].get(outcome, 0) for k in labels], dtype=np.float64)
+        ax.bar(x, heights, 0.6, bottom=bottom, color=OUTCOME_COLORS[outcome], label=OUTCOME_LABELS[outcome])
+        for xi, b, h in zip(x, bottom, heights, strict=True):
+            if h > 0:
+                ax.text(xi, b + h / 2, f"{int(h)}", ha="center", va="center", fontsize=8)
+        bottom += heights
+    ax.set_xticks(x, [k.replace("/", "/\n") for k in labels], fontsize=8)
+    ax.set_ylabel("episodes")
+    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    if title:
+        ax.set_title(title, fontsize=10)
+    return _save(fig, path)
+
+
+def plot_sweep(
+    counts_by_sensor: Mapping[str, Mapping[str, Mapping[str, int]]],
+    path: str | Path,
+    *,
+    title: str | None = None,
+) -> Path:
+    """Outcomes against the depth sensor: per sensor (x, in the given order) one group of stacked
+    bars, one bar per method (colour) with grasp & place solid, grasp only hatched on top and fail
+    left empty, as fractions of that method's episodes.
+
+    ``counts_by_sensor[sensor][method][outcome]`` are episode counts.
+    """
+    from matplotlib.patches import Patch
+
+    sensors = list(counts_by_sensor)
+    methods = list(counts_by_sensor[sensors[0]]) if sensors else []
+    fig = _new_figure(max(5.5, 1.6 * len(sensors) * max(1, len(methods)) / 2 + 2.5), 3.8, dpi=110, layout="constrained")
+    ax = fig.add_subplot()
+    width = 0.8 / max(1, len(methods))
+    for index, method in enumerate(methods):
+        color = f"C{index % 10}"
+        x = np.arange(len(sensors)) - 0.4 + width * (index + 0.5)
+        totals = np.array([max(1, sum(counts_by_sensor[s][method].values())) for s in sensors], dtype=np.float64)
+        place = np.array([counts_by_sensor[s][method].get("grasp_and_place", 0) for s in sensors]) / totals
+        only = np.array([counts_by_sensor[s][method].get("grasp_only", 0) for s in sensors]) / totals
+        ax.bar(x, place, width * 0.9, color=color, label=f"{method}")
+        ax.bar(x, only, width * 0.9, bottom=place, color="white", edgecolor=color, hatch="///", linewidth=0.8)
+    ax.set_xticks(np.arange(len(sensors)), sensors)
+    ax.set_xlabel("depth sensor (ideal -> D435)")
+    ax.set_ylabel("fraction of episodes")
+    ax.set_ylim(0.0, 1.05)
+    ax.grid(True, axis="y", alpha=0.3)
+    handles, labels = ax.get_legend_handles_labels()
+    handles.append(Patch(facecolor="white", edgecolor="gray", hatch="///"))
+    labels.append("grasp only (on top of grasp & place)")
+    ax.legend(handles, labels, fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    if title:
+        ax.set_title(title, fontsize=10)
+    return _save(fig, path)
+
+
+# --- training (don_gym.train, don_gym.agents.rl) -----------------------------------------------------
+
+
+def plot_loss_curve(rows: Sequence[Mapping[str, Any]], path: str | Path, title: str) -> Path:
+    """Loss per step (light) and its moving average (dark), log scale; ``rows`` are the loss CSV's
+    rows with at least ``step`` and ``loss`` (numbers or their strings)."""
+    steps = np.array([int(r["step"]) for r in rows])
+    loss = np.array([float(r["loss"]) for r in rows])
+    fig = _new_figure(6, 3.5, dpi=120)
+    ax = fig.add_subplot()
+    ax.plot(steps, loss, color="tab:blue", alpha=0.3, lw=0.8, label="loss per step")
+    window = max(1, len(loss) // 50)
+    if len(loss) >= window:
+        smooth = np.convolve(loss, np.ones(window) / window, mode="valid")
+        ax.plot(steps[window - 1 :], smooth, color="tab:blue", lw=1.8, label=f"moving average ({window} steps)")
+    ax.set_yscale("log")
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss")
+    ax.set_title(title, fontsize=10)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_learning_curve(
+    curves: Sequence[tuple[str, tuple[np.ndarray, np.ndarray, np.ndarray]]],
+    path: str | Path,
+    window: int,
+    title: str,
+    reference_lines: Sequence[tuple[str, float, float]] = (),
+) -> Path:
+    """Success rate and mean return of RL training episodes against env steps, side by side.
+
+    ``curves``: (label, (env steps, success rate, mean return)) with the rates rolled over the last
+    ``window`` episodes (``LearningCurve.rolling(window)`` of :mod:`don_gym.agents.rl`);
+    ``reference_lines``: (label, success rate, mean return) of baselines drawn as dashed lines.
+    """
+    fig = _new_figure(10, 4.4)
+    ax_success, ax_return = fig.subplots(1, 2)
+    for label, (steps, success, returns) in curves:
+        ax_success.plot(steps, success, label=label)
+        ax_return.plot(steps, returns, label=label)
+    for k, (label, success_rate, mean_return) in enumerate(reference_lines):
+        colour = f"C{k + len(curves)}"
+        ax_success.axhline(success_rate, linestyle="--", color=colour, label=label)
+        ax_return.axhline(mean_return, linestyle="--", color=colour, label=label)
+    ax_success.set(xlabel="env steps", ylabel=f"success rate (last {window} episodes)", ylim=(-0.02, 1.02))
+    ax_return.set(xlabel="env steps", ylabel=f"episode return (mean of last {window})")
+    handles, labels = ax_success.get_legend_handles_labels()
+    rows = (len(labels) + 2) // 3
+    # One legend under both plots, so that no line is hidden behind it.
+    fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=8, frameon=False)
+    fig.suptitle(title)
+    fig.tight_layout(rect=(0.0, 0.06 * rows, 1.0, 1.0))
+    return _save(fig, path, dpi=110)

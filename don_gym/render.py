@@ -1,36 +1,8 @@
 """Supervised training targets: descriptor images, object masks and view-dependent descriptors.
 
-The paper (Kupcsik et al. 2021, "Generating Target Images and Network Training") projects the
-optimal per-vertex descriptors of the object model into each camera image; pixels off the object
-get the background descriptor. Here that is done by ray casting: one ray through each pixel centre
-(OpenCV pinhole model, :func:`don_gym.geometry.pixel_rays`) that can reach the object (pixels of
-its projected convex hull, clipped to the image), first hit on the mesh, and barycentric
-interpolation of the vertex descriptors over the hit triangle (``don_gym.descriptors.
-interpolate_field`` when that module is importable, an equivalent private one otherwise). Depth and
-barycentrics are recomputed in float64 on the hit triangle, since Embree works in float32.
-
-Ray casting uses Embree through trimesh (``trimesh.ray.ray_pyembree.RayMeshIntersector``) when the
-``embreex`` package imports, else trimesh's pure-numpy ``trimesh.ray.ray_triangle`` intersector,
-which gives the same hits but is much slower. :class:`DescriptorRenderer` picks one at construction
-(``intersector="auto"``) and says which in ``intersector_name``; ``"embree"`` or ``"triangle"``
-force a choice. Rays are cast in the object frame, so the acceleration structure (BVH) is built once
-per mesh and cached.
-
-Targets must be rendered from the camera pose the dataset *reports*, i.e. the caller passes
-``T_camera_object = inv(T_world_camera_reported) @ T_world_object``, so that a target matches what
-the recorded pose says the camera saw (pose errors then show up as they would with a real robot).
-
-Occlusion: the ray cast knows only the object. Pixels of the object hidden by the gripper or
-anything else must be background, so the caller passes the simulator's segmentation of the object
-as ``visible_mask``; the final object mask is ``ray-cast hit AND visible_mask``. The ray cast
-samples exactly the pixel centre while a rasteriser has its own coverage rule, so the two disagree
-on about one pixel along parts of the silhouette; the AND drops those pixels from the object (it
-never adds any). That is expected and is not eroded or dilated further.
-
-View-dependent descriptors (paper, Sec. "View-dependent Descriptors") are computed from the object
-mask of the frame: :func:`edge_blend` blends object-edge pixels towards the background descriptor,
-:func:`mask_channel` is 0 off the object rising to 1 at its centre, and :func:`make_target` builds
-the paper's "geometric", "edge" and "mask" target variants.
+:class:`DescriptorRenderer` projects an object's optimal per-vertex descriptors into a camera image by
+ray casting (docs/background.md, section "Rendering descriptor targets"); :func:`make_target` builds the
+paper's "geometric", "edge" and "mask" target variants (Kupcsik et al. 2021, "View-dependent Descriptors").
 """
 
 from __future__ import annotations
@@ -42,6 +14,7 @@ import cv2
 import numpy as np
 import trimesh
 
+from don_gym.descriptors import interpolate_field
 from don_gym.errors import DonGymError, MeshError
 from don_gym.geometry import CameraIntrinsics, invert_transform, pixel_rays, project_points, transform_points
 
@@ -49,11 +22,6 @@ try:  # embreex is an optional accelerator; trimesh's own intersector is the fal
     from trimesh.ray.ray_pyembree import RayMeshIntersector as _EmbreeIntersector
 except ImportError:  # pragma: no cover - depends on the platform's wheels
     _EmbreeIntersector = None
-
-try:  # One way to interpolate a field over triangles: use the descriptors module's when present.
-    from don_gym.descriptors import interpolate_field as _interpolate_field
-except ImportError:  # pragma: no cover - only while the descriptors module is missing
-    _interpolate_field = None
 
 #: Accepted values of ``intersector``.
 INTERSECTORS = ("auto", "embree", "triangle")
@@ -313,6 +281,13 @@ def _check_background(background: np.ndarray, dims: int) -> np.ndarray:
 class DescriptorRenderer:
     """Renders descriptor target images of one mesh with fixed vertex descriptors.
 
+    One ray through each pixel centre (OpenCV pinhole model, :func:`don_gym.geometry.pixel_rays`)
+    that can reach the object (pixels of its projected convex hull, clipped to the image), first hit
+    on the mesh, and barycentric interpolation of the vertex descriptors over the hit triangle
+    (:func:`don_gym.descriptors.interpolate_field`). Depth and barycentrics are recomputed in float64
+    on the hit triangle, since Embree works in float32. Rays are cast in the object frame, so the
+    acceleration structure (BVH) is built once per mesh and cached.
+
     Args:
         mesh: the object mesh in metres, object frame (a ``trimesh.Trimesh`` or a
             ``(vertices (N, 3), faces (F, 3))`` pair). Its vertex order must match
@@ -365,6 +340,16 @@ class DescriptorRenderer:
     ) -> RenderedTarget:
         """Render the descriptor image, mask, depth and triangle ids of one frame.
 
+        Render from the camera pose the dataset *reports*, i.e. pass
+        ``T_camera_object = inv(T_world_camera_reported) @ T_world_object``, so that a target matches
+        what the recorded pose says the camera saw (pose errors then show up as with a real robot).
+
+        The ray cast knows only the object, so pixels hidden by the gripper or anything else come
+        from ``visible_mask``: the final object mask is ``ray-cast hit AND visible_mask``. The ray
+        cast samples exactly the pixel centre while a rasteriser has its own coverage rule, so the
+        two disagree on about one pixel along parts of the silhouette; the AND drops those pixels
+        from the object (it never adds any), and the mask is not eroded or dilated further.
+
         Args:
             intrinsics: pinhole intrinsics; the image is ``intrinsics.height`` x ``intrinsics.width``.
             T_camera_object: (4, 4) object pose in the (OpenCV) camera frame, from the *reported*
@@ -400,15 +385,10 @@ class DescriptorRenderer:
         )
 
     def _interpolate(self, triangle_ids: np.ndarray, barycentric: np.ndarray) -> np.ndarray:
-        if _interpolate_field is not None:
-            return np.asarray(
-                _interpolate_field(self.vertex_descriptors, self._raycaster.faces, triangle_ids, barycentric),
-                dtype=np.float32,
-            )
-        corners = self._raycaster.faces[triangle_ids]
-        weights = barycentric.astype(np.float32)
-        descriptors = self.vertex_descriptors
-        return sum(descriptors[corners[:, k]] * weights[:, k : k + 1] for k in range(3))
+        return np.asarray(
+            interpolate_field(self.vertex_descriptors, self._raycaster.faces, triangle_ids, barycentric),
+            dtype=np.float32,
+        )
 
 
 def render_descriptor_image(

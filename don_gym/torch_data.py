@@ -1,32 +1,24 @@
 """PyTorch datasets over a don_gym dataset directory, one per training method.
 
-- :class:`SupervisedFrames`: (image, target, mask) per frame for the supervised l2 loss,
-  with the paper's target variants computed from the stored geometric target and mask:
-  ``"geometric"`` (method ``supervised``), ``"edge"`` (``supervised-edge``) and ``"mask"``
-  (``supervised-mask``).
-- :class:`CorrespondencePairs`: image pairs of one scene with pixel correspondences sampled
-  from depth (fused sensor depth by default, as the original pipeline; ``"sensor"`` and
-  ``"ideal"`` for ablations) for the self-supervised contrastive loss.
-
-Both can cut a random ``crop_size`` (width, height) window out of each image, placed so the
-object is inside it (its mask centroid within the middle of the window) with probability
-``1 - background_crop_probability``, anywhere otherwise. A fully convolutional network
-trains on crops and runs on whole frames; on a CPU a 160x120 crop of a 320x240 frame costs
-a quarter of the time per step. Augmentation is the trainer's job.
+:class:`SupervisedFrames` serves frames with descriptor targets for the supervised l2 loss,
+:class:`CorrespondencePairs` image pairs with sampled correspondences for the contrastive loss.
+:class:`StepBatches` serves a training run's augmented batches by step number, so that
+:func:`step_loader` can build them in worker processes.
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
-from torch.utils.data import Dataset
+from torch.utils.data import DataLoader, Dataset
 
+from don_gym.augment import AugmentConfig, augment
 from don_gym.correspondences import Correspondences, camera_poses_differ, sample_correspondences
-from don_gym.dataset import DONDataset
-from don_gym.errors import DatasetError
+from don_gym.dataset import DEPTH_SOURCES, DONDataset
+from don_gym.errors import DatasetError, DonGymError
 from don_gym.render import TARGET_VARIANTS, default_edge_width_px, make_target
-
-DEPTH_SOURCES = {"fused": ("depth_fused", "mask_fused"), "sensor": ("depth", "mask"), "ideal": ("depth_ideal", "mask")}
 
 
 def crop_window(
@@ -36,6 +28,7 @@ def crop_window(
 
     The object's mask centroid falls in the middle half of the window, unless the image has
     no object pixels or, with ``background_probability``, the window is placed anywhere.
+    A fully convolutional network trains on such crops and runs on whole frames.
     """
     height, width = object_mask.shape
     crop_w, crop_h = min(crop_size[0], width), min(crop_size[1], height)
@@ -79,6 +72,11 @@ class SupervisedFrames(Dataset):
     ``rgb`` float32 (3, H, W) in [0, 1]; ``target`` float32 (D, H, W); ``object_mask``
     bool (H, W) from the rendered target (object pixels hidden in the image are
     background, as the segmentation says).
+
+    ``variant`` is the paper's target variant, computed from the stored geometric target and
+    mask: ``"geometric"`` (method ``supervised``), ``"edge"`` (``supervised-edge``) or ``"mask"``
+    (``supervised-mask``). With ``crop_size`` (width, height), each item is a window cut by
+    :func:`crop_window` (object-centred with probability ``1 - background_crop_probability``).
     """
 
     def __init__(
@@ -107,6 +105,10 @@ class SupervisedFrames(Dataset):
         return len(self.index)
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        return self.frame(i, np.random.default_rng([self.seed, self.epoch, int(i)]))
+
+    def frame(self, i: int, crop_rng: np.random.Generator) -> dict[str, torch.Tensor]:
+        """Item ``i`` with its crop window drawn from ``crop_rng``."""
         scene, frame = self.index[i]
         rgb = self.data.image(scene, frame, "rgb")
         mask = self.data.image(scene, frame, "target_mask")
@@ -114,8 +116,7 @@ class SupervisedFrames(Dataset):
             self.variant, self.data.image(scene, frame, "descriptor"), mask, self.background, self.edge_width_px
         )
         if self.crop_size is not None:
-            rng = np.random.default_rng([self.seed, self.epoch, int(i)])
-            u0, v0 = crop_window(mask, self.crop_size, rng, self.background_crop_probability)
+            u0, v0 = crop_window(mask, self.crop_size, crop_rng, self.background_crop_probability)
             window = (slice(v0, v0 + self.crop_size[1]), slice(u0, u0 + self.crop_size[0]))
             rgb, mask, target = rgb[window], mask[window], target[window]
         return {
@@ -130,9 +131,14 @@ class CorrespondencePairs(Dataset):
 
     Item ``i`` is deterministic given ``seed`` (pair and samples drawn from a generator
     seeded with ``(seed, i)``), so a fixed seed gives the same training data. Pairs are
-    redrawn until the camera poses differ by more than the NOTES' 0.2 m or 20 degrees
-    (at most ``max_pair_tries`` times). Returns ``{"rgb_a", "rgb_b", "object_mask_a",
-    "object_mask_b", "correspondences"}``; use ``collate_pairs`` (batch of lists).
+    redrawn until the camera poses differ by more than 0.2 m or 20 degrees (docs/background.md,
+    section "Self-supervised DON training"; at most ``max_pair_tries`` times). Returns
+    ``{"rgb_a", "rgb_b", "object_mask_a", "object_mask_b", "correspondences"}``; use
+    ``collate_pairs`` (batch of lists).
+
+    ``depth_source`` names the depth and masks correspondences are sampled from
+    (:data:`don_gym.dataset.DEPTH_SOURCES`): ``"fused"`` (the original pipeline's), ``"sensor"``
+    or ``"ideal"`` for ablations. ``crop_size`` crops both images as in :class:`SupervisedFrames`.
     """
 
     def __init__(
@@ -212,3 +218,112 @@ def collate_pairs(items: list[dict]) -> dict:
     }
     out["correspondences"] = [item["correspondences"] for item in items]
     return out
+
+
+def item_generator(seed: int, step: int, number: int) -> torch.Generator:
+    """The augmentation generator of image ``number`` of training step ``step``."""
+    generator = torch.Generator()
+    generator.manual_seed(int(np.random.SeedSequence([seed, step, number, 1]).generate_state(1)[0]))
+    return generator
+
+
+class StepBatches(Dataset):
+    """A training run's batches: item ``s`` is this process's share of the batch of step ``s``, augmented.
+
+    Image ``k`` (0 <= k < ``batch_size``) of step ``s`` is chosen, cropped and augmented with
+    generators seeded from ``(seed, s, k)`` alone, so a step's batch is the same whichever
+    worker process builds it and however many processes train: process ``rank`` of
+    ``world_size`` gets images ``rank * b`` to ``(rank + 1) * b - 1``, ``b = batch_size //
+    world_size``. Supervised sources (:class:`SupervisedFrames`) pick the step's frames with a
+    generator seeded from ``(seed, s)``; :class:`CorrespondencePairs` serves pair ``s *
+    batch_size + k``.
+
+    Items are ``{"rgb", "target", "object_mask"}`` (supervised) or ``{"rgb_a", "rgb_b",
+    "correspondences"}`` (pairs), batched along the first dimension. A user error while
+    loading comes back as ``{"error": exception}`` for the trainer to raise, so it reads the
+    same with or without worker processes.
+    """
+
+    def __init__(
+        self,
+        source: SupervisedFrames | CorrespondencePairs,
+        steps: int,
+        batch_size: int,
+        seed: int,
+        augment_config: AugmentConfig,
+        rank: int = 0,
+        world_size: int = 1,
+    ) -> None:
+        if batch_size < 1 or world_size < 1 or batch_size % world_size or not 0 <= rank < world_size:
+            raise DonGymError(
+                f"batch size {batch_size} must be a positive multiple of the number of processes {world_size}"
+            )
+        self.source = source
+        self.steps = int(steps)
+        self.batch_size = int(batch_size)
+        self.seed = int(seed)
+        self.augment_config = augment_config
+        share = batch_size // world_size
+        self.numbers = range(rank * share, (rank + 1) * share)
+
+    def __len__(self) -> int:
+        return self.steps
+
+    def __getitem__(self, step: int) -> dict[str, Any]:
+        try:
+            if isinstance(self.source, SupervisedFrames):
+                return self._frames(int(step))
+            return self._pairs(int(step))
+        except DonGymError as exc:
+            return {"error": exc}
+
+    def _augment(self, rgb: torch.Tensor, mask: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        return augment(rgb[None], mask[None], generator, self.augment_config)[0]
+
+    def _frames(self, step: int) -> dict[str, Any]:
+        frames = np.random.default_rng([self.seed, step]).integers(len(self.source), size=self.batch_size)
+        rgb, target, mask = [], [], []
+        for k in self.numbers:
+            item = self.source.frame(int(frames[k]), np.random.default_rng([self.seed, step, k]))
+            rgb.append(self._augment(item["rgb"], item["object_mask"], item_generator(self.seed, step, k)))
+            target.append(item["target"])
+            mask.append(item["object_mask"])
+        return {"rgb": torch.stack(rgb), "target": torch.stack(target), "object_mask": torch.stack(mask)}
+
+    def _pairs(self, step: int) -> dict[str, Any]:
+        rgb_a, rgb_b, correspondences = [], [], []
+        for k in self.numbers:
+            item = self.source[step * self.batch_size + k]
+            generator = item_generator(self.seed, step, k)
+            rgb_a.append(self._augment(item["rgb_a"], item["object_mask_a"], generator))
+            rgb_b.append(self._augment(item["rgb_b"], item["object_mask_b"], generator))
+            correspondences.append(item["correspondences"])
+        return {"rgb_a": torch.stack(rgb_a), "rgb_b": torch.stack(rgb_b), "correspondences": correspondences}
+
+
+def _init_loader_worker(worker_id: int) -> None:
+    # Each worker builds whole batches on its own; threads inside a worker would only compete
+    # with the other workers and the training process for the same cores.
+    import cv2
+
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+
+
+def _as_is(batch: dict[str, Any]) -> dict[str, Any]:
+    return batch
+
+
+def step_loader(batches: StepBatches, first_step: int, workers: int, pin_memory: bool = False) -> DataLoader:
+    """Batches of steps ``first_step, first_step + 1, ...`` in order, built by ``workers`` processes
+    (0: in the calling thread). ``pin_memory`` pins them for asynchronous copies to a GPU."""
+    return DataLoader(
+        batches,
+        batch_size=None,
+        sampler=range(first_step, len(batches)),
+        num_workers=workers,
+        collate_fn=_as_is,
+        pin_memory=pin_memory,
+        worker_init_fn=_init_loader_worker if workers else None,
+        prefetch_factor=2 if workers else None,
+    )

@@ -1,33 +1,32 @@
 """DON training with either method on one dataset directory.
 
-``train(config)`` runs Adam on a :class:`~don_gym.model.DenseObjectNet` with
+``train(config)`` runs Adam on a :class:`~don_gym.model.DenseObjectNet` with the supervised l2 loss or the
+contrastive loss (:mod:`don_gym.methods`), with the original DON's optimiser defaults (docs/background.md,
+section "Self-supervised DON training"). Every step is seeded with ``(seed, step)``, so a resumed run continues
+the same loss curve. A run directory holds ``config.json``, ``losses.csv`` (one row per step), ``loss_curve.png``,
+``checkpoints/step_XXXXXX.safetensors`` every ``checkpoint_every`` steps, ``train_state.pt`` (optimiser state for
+``--resume``) and the final ``model.safetensors``.
 
-- ``supervised`` / ``supervised-edge`` / ``supervised-mask``: the paper's l2 loss
-  (object and background terms normalised by their pixel counts) to rendered optimal
-  descriptor targets (:class:`~don_gym.torch_data.SupervisedFrames`);
-- ``self-supervised``: the pixelwise contrastive loss with hard-negative scaling on
-  correspondences sampled from fused sensor depth
-  (:class:`~don_gym.torch_data.CorrespondencePairs`),
-
-with background randomisation and photometric jitter for both. Defaults follow the
-original DON (Adam, lr 1e-4, weight decay 1e-4, lr x0.9 every 250 steps), except the
-learning rate of the CPU-sized default network, which trains from scratch.
-
-Everything a step uses is drawn from generators seeded with ``(seed, step)``, so a
-fixed seed gives the same loss curve, and a resumed run continues it exactly.
-
-A run directory holds ``config.json``, ``losses.csv`` (one row per step),
-``loss_curve.png``, ``checkpoints/step_XXXXXX.safetensors`` every
-``checkpoint_every`` steps, ``train_state.pt`` (optimiser state for ``--resume``) and
-the final ``model.safetensors``.
+Batches come from :class:`~don_gym.torch_data.StepBatches`, built in ``workers`` processes. Under
+``torchrun`` each process trains on its share of every step's batch with DistributedDataParallel
+(:mod:`don_gym.distributed`) and rank 0 alone writes the run directory. On a GPU, steps run under
+mixed precision (bf16, or fp16 with a gradient scaler) in channels-last layout.
 """
 
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
+import math
+import re
+import signal
+import threading
 import time
-from dataclasses import asdict, dataclass, field
+import warnings
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, nullcontext
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -35,22 +34,46 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from don_gym.augment import AugmentConfig, augment
-from don_gym.checkpoints import CheckpointMetadata, save_checkpoint
+from don_gym.augment import AugmentConfig
+from don_gym.checkpoints import CheckpointMetadata, PartIdentity, save_checkpoint
+from don_gym.dataset import DEPTH_SOURCES, DONDataset
+from don_gym.distributed import (
+    BACKENDS,
+    SINGLE_PROCESS,
+    LaunchEnvironment,
+    all_reduce_sum,
+    broadcast_from_main,
+    launch_environment,
+    resolve_backend,
+    same_on_every_process,
+    start_process_group,
+    synchronize_batchnorm,
+)
 from don_gym.errors import DonGymError
 from don_gym.io import atomic_path, write_text_atomic
 from don_gym.losses import batch_contrastive_loss, supervised_l2_loss
 from don_gym.methods import SUPERVISED_TARGET_VARIANT, is_supervised, validate_method
-from don_gym.model import DEFAULT_ARCH, DenseObjectNet
-from don_gym.torch_data import CorrespondencePairs, SupervisedFrames
+from don_gym.model import ARCHS, DEFAULT_ARCH, DenseObjectNet, validate_arch
+from don_gym.objects import part_name
+from don_gym.plotting import plot_loss_curve
+from don_gym.torch_data import CorrespondencePairs, StepBatches, SupervisedFrames, step_loader
 
 RUN_CONFIG = "config.json"
 LOSS_CSV = "losses.csv"
 LOSS_PNG = "loss_curve.png"
 TRAIN_STATE = "train_state.pt"
 FINAL_MODEL = "model.safetensors"
-#: Settings that may differ when resuming a run.
-RESUMABLE_CHANGES = ("steps", "checkpoint_every", "device", "threads")
+#: Settings that may differ when resuming a run: they change how long, how often or how fast
+#: it trains, not what a step computes (beyond float rounding).
+RESUMABLE_CHANGES = ("steps", "checkpoint_every", "device", "threads", "workers", "precision", "backend")
+#: Paths are compared by what they point at, never by spelling: the run directory is the run
+#: being resumed wherever it lies, the dataset is compared by content (:func:`dataset_identity`)
+#: and pretrained weights matter only before the first step.
+PATH_SETTINGS = ("out", "data", "pretrained_path")
+#: Values of ``TrainConfig.precision``.
+PRECISIONS = ("auto", "fp32", "bf16", "fp16")
+#: Key of config.json that records :func:`dataset_identity`.
+DATASET_IDENTITY_KEY = "dataset_identity"
 
 
 @dataclass(frozen=True)
@@ -59,7 +82,14 @@ class TrainConfig:
     1e-3 for the from-scratch ``resnet-lite``. ``crop_size`` (width, height) trains on
     object-centred random crops (None: whole frames); the network still runs on whole frames.
     ``threads`` sets torch's CPU threads (None: torch's default); on a machine whose cores
-    are shared with other work, 1 thread avoids OpenMP stalls that can slow a step 10x."""
+    are shared with other work, 1 thread avoids OpenMP stalls that can slow a step 10x.
+
+    ``batch_size`` is the batch of one step over all processes of a torchrun launch (each of
+    N processes computes ``batch_size / N``). ``workers`` processes build the batches (0: the
+    training thread does). ``device`` is ``"auto"`` (CUDA if present), ``"cpu"``, ``"cuda"`` or
+    ``"cuda:N"``; ``precision`` ``"auto"`` is bf16 autocast on GPUs that support it, else fp16
+    with a gradient scaler, and fp32 on the CPU. ``backend`` (``"auto"``: NCCL on GPUs, gloo on
+    CPUs) is the torch.distributed backend under torchrun."""
 
     method: str
     data: str
@@ -81,6 +111,9 @@ class TrainConfig:
     crop_size: tuple[int, int] | None = (160, 120)
     threads: int | None = None
     augment: dict[str, float] = field(default_factory=lambda: asdict(AugmentConfig()))
+    workers: int = 0
+    precision: str = "auto"
+    backend: str = "auto"
 
     def learning_rate(self) -> float:
         if self.lr is not None:
@@ -91,32 +124,167 @@ class TrainConfig:
 @dataclass(frozen=True)
 class TrainResult:
     """What a finished run reports; ``seconds`` and ``images_per_second`` cover every session of a
-    resumed run, and are None for a run resumed from a state saved before they were recorded."""
+    resumed run, and are None for a run resumed from a state saved before they were recorded.
+    ``data_wait_fraction`` is the share of this session's step time spent waiting for a batch, after
+    the first batch (whose wait is the loader's start-up); None for a session of fewer than 2 steps."""
 
     model_path: Path
     final_loss: float
     steps: int
     seconds: float | None
     images_per_second: float | None
+    data_wait_fraction: float | None = None
 
 
-def _device(name: str) -> torch.device:
+def _integer(config: TrainConfig, name: str, minimum: int) -> None:
+    value = getattr(config, name)
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise DonGymError(f"{name} must be an integer >= {minimum}, got {value!r}")
+
+
+def _real(config: TrainConfig, name: str, low: float, high: float, low_open: bool = False) -> None:
+    value = getattr(config, name)
+    ok = isinstance(value, (int, float, np.floating)) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or value > high or value < low or (low_open and value == low):
+        interval = f"{'(' if low_open else '['}{low:g}, {high:g}]"
+        raise DonGymError(f"{name} must be a finite number in {interval}, got {value!r}")
+
+
+def validate_config(config: TrainConfig) -> None:
+    """Every check on ``config`` that needs neither files nor devices; raises :class:`DonGymError`."""
+    validate_method(config.method)
+    validate_arch(config.arch)
+    for name in ("data", "out"):
+        if not isinstance(getattr(config, name), str) or not getattr(config, name):
+            raise DonGymError(f"{name} must be a path, got {getattr(config, name)!r}")
+    for name, minimum in (("steps", 1), ("batch_size", 1), ("lr_decay_every", 1), ("checkpoint_every", 1),
+                          ("seed", 0), ("workers", 0)):  # fmt: skip
+        _integer(config, name, minimum)
+    if config.threads is not None:
+        _integer(config, "threads", 1)
+    if config.lr is not None:
+        _real(config, "lr", 0.0, 1.0, low_open=True)  # Adam steps beyond 1 only diverge
+    _real(config, "weight_decay", 0.0, 1.0)
+    _real(config, "lr_decay", 0.0, 1.0, low_open=True)
+    _real(config, "object_margin", 0.0, 1e6)
+    _real(config, "background_margin", 0.0, 1e6)
+    if config.depth_source not in DEPTH_SOURCES:
+        raise DonGymError(f"depth_source {config.depth_source!r} is unknown; expected one of {sorted(DEPTH_SOURCES)}")
+    if config.crop_size is not None and (
+        len(config.crop_size) != 2 or any(isinstance(v, bool) or int(v) != v or v < 1 for v in config.crop_size)
+    ):
+        raise DonGymError(f"crop_size must be (width, height) in pixels > 0 or None, got {config.crop_size!r}")
+    try:
+        AugmentConfig(**config.augment)
+    except TypeError as exc:
+        raise DonGymError(f"augment: {exc}; the settings are {[f.name for f in fields(AugmentConfig)]}") from None
+    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", str(config.device)):
+        raise DonGymError(f"device {config.device!r} is unknown; expected auto, cpu, cuda or cuda:N")
+    if config.precision not in PRECISIONS:
+        raise DonGymError(f"precision {config.precision!r} is unknown; expected one of {list(PRECISIONS)}")
+    if config.backend not in BACKENDS:
+        raise DonGymError(f"backend {config.backend!r} is unknown; expected one of {list(BACKENDS)}")
+    if config.pretrained_path is not None and not ARCHS[config.arch].torchvision_layout:
+        raise DonGymError(
+            f"pretrained weights {config.pretrained_path}: arch {config.arch!r} has no ImageNet layout; "
+            f"use one of {sorted(k for k, v in ARCHS.items() if v.torchvision_layout)}"
+        )
+
+
+def resolve_device(name: str, launch: LaunchEnvironment = SINGLE_PROCESS) -> torch.device:
+    """The torch device for ``TrainConfig.device``; under torchrun each process takes GPU ``LOCAL_RANK``."""
     if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cpu":
+        return torch.device("cpu")
+    if not torch.cuda.is_available():
+        built = "a torch built without CUDA" if torch.version.cuda is None else "no CUDA GPU visible"
+        raise DonGymError(f"device {name!r}: this machine has {built} (torch {torch.__version__}); use --device cpu")
+    count = torch.cuda.device_count()
+    if launch.world_size > 1:
+        if name != "cuda":
+            raise DonGymError(f"device {name!r}: under torchrun use --device cuda; process k takes GPU LOCAL_RANK=k")
+        index = launch.local_rank
+    else:
+        index = int(name.partition(":")[2] or 0)
+    if index >= count:
+        raise DonGymError(f"device cuda:{index} (rank {launch.rank}): only {count} GPU(s) are visible")
+    return torch.device("cuda", index)
 
 
-def _step_generator(seed: int, step: int) -> torch.Generator:
-    generator = torch.Generator()
-    generator.manual_seed(int(np.random.SeedSequence([seed, step, 1]).generate_state(1)[0]))
-    return generator
+def autocast_dtype(precision: str, device: torch.device) -> torch.dtype | None:
+    """The autocast dtype of ``precision`` on ``device``; None for fp32."""
+    if precision == "auto":
+        if device.type != "cuda":
+            return None
+        return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+    if precision == "fp32":
+        return None
+    if device.type != "cuda":
+        raise DonGymError(f"precision {precision!r} needs a GPU (--device cuda); the CPU trains in fp32")
+    if precision == "bf16" and not torch.cuda.is_bf16_supported():
+        raise DonGymError(f"precision 'bf16': {torch.cuda.get_device_name(device)} does not support it; use fp16")
+    return torch.bfloat16 if precision == "bf16" else torch.float16
+
+
+def dataset_identity(data: DONDataset) -> str:
+    """A digest of what a dataset directory holds (its dataset.json and complete scenes), not where it lies."""
+    digest = hashlib.sha256(json.dumps(data.info, sort_keys=True).encode())
+    digest.update(json.dumps([[scene.index, scene.num_frames] for scene in data.scenes]).encode())
+    return digest.hexdigest()[:16]
+
+
+def _config_json(config: TrainConfig) -> dict[str, Any]:
+    return json.loads(json.dumps(asdict(config)))
+
+
+def _read_saved_config(path: Path) -> dict[str, Any]:
+    try:
+        saved = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DonGymError(f"{path}: missing; the run directory has a {TRAIN_STATE} but no {RUN_CONFIG}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DonGymError(f"{path}: cannot be read as JSON ({exc}); the run cannot be resumed") from None
+    if not isinstance(saved, dict):
+        raise DonGymError(f"{path}: expected a JSON object of training settings, got {type(saved).__name__}")
+    return saved
+
+
+def _changed_settings(saved: dict[str, Any], config: TrainConfig, identity: str) -> list[str]:
+    wanted = _config_json(config)
+    defaults = _config_json(TrainConfig(method=config.method, data=config.data, out=config.out))
+    changed = sorted(
+        name
+        for name in wanted
+        if name not in RESUMABLE_CHANGES + PATH_SETTINGS and saved.get(name, defaults[name]) != wanted[name]
+    )
+    if DATASET_IDENTITY_KEY in saved:
+        same_data = saved[DATASET_IDENTITY_KEY] == identity
+    else:  # written before identities were recorded: the best left is the resolved path
+        same_data = Path(str(saved.get("data"))).resolve() == Path(config.data).resolve()
+    return changed if same_data else sorted([*changed, "data"])
+
+
+def _read_train_state(path: Path) -> dict[str, Any]:
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # any unpickling failure means a damaged file
+        detail = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise DonGymError(f"{path}: cannot be read ({detail}); the run cannot be resumed from it") from None
+    keys = ("model", "optimizer", "scheduler", "step")
+    if not isinstance(state, dict) or any(k not in state for k in keys):
+        raise DonGymError(f"{path}: not a training state (expected the keys {list(keys)})")
+    return state
 
 
 def _read_loss_rows(path: Path, up_to_step: int) -> list[dict[str, str]]:
     if not path.is_file():
         return []
-    with path.open() as f:
-        return [row for row in csv.DictReader(f) if int(row["step"]) <= up_to_step]
+    try:
+        with path.open() as f:
+            return [row for row in csv.DictReader(f) if int(row["step"]) <= up_to_step]
+    except (KeyError, TypeError, ValueError, UnicodeDecodeError, csv.Error) as exc:
+        raise DonGymError(f"{path}: not a loss table with a 'step' column ({exc!r})") from None
 
 
 def _write_loss_csv(path: Path, rows: list[dict[str, Any]]) -> None:
@@ -129,31 +297,13 @@ def _write_loss_csv(path: Path, rows: list[dict[str, Any]]) -> None:
         writer.writerows(rows)
 
 
-def plot_loss_curve(rows: list[dict[str, Any]], path: Path, title: str) -> None:
-    """Loss per step (light) and its moving average (dark), log scale, as a PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    steps = np.array([int(r["step"]) for r in rows])
-    loss = np.array([float(r["loss"]) for r in rows])
-    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=120)
-    ax.plot(steps, loss, color="tab:blue", alpha=0.3, lw=0.8, label="loss per step")
-    window = max(1, len(loss) // 50)
-    if len(loss) >= window:
-        smooth = np.convolve(loss, np.ones(window) / window, mode="valid")
-        ax.plot(steps[window - 1 :], smooth, color="tab:blue", lw=1.8, label=f"moving average ({window} steps)")
-    ax.set_yscale("log")
-    ax.set_xlabel("step")
-    ax.set_ylabel("loss")
-    ax.set_title(title, fontsize=10)
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp)
-    plt.close(fig)
+@contextmanager
+def _writing(path: Path) -> Iterator[None]:
+    """Turn a failed write (read-only or full file system, a file where a directory should be) into one line."""
+    try:
+        yield
+    except OSError as exc:
+        raise DonGymError(f"cannot write {path}: {exc.strerror or exc}") from None
 
 
 def checkpoint_metadata(
@@ -162,7 +312,7 @@ def checkpoint_metadata(
     supervised = is_supervised(config.method)
     return CheckpointMetadata(
         method=config.method,
-        object_name=dataset_info["object"],
+        object_name=dataset_info.get("object_name") or part_name(dataset_info["object"]),
         object_mesh_hash=dataset_info["mesh_hash"],
         image_size=tuple(image_size),
         descriptor_field_hash=dataset_info["descriptor_field_hash"] if supervised else "",
@@ -182,161 +332,349 @@ def checkpoint_metadata(
     )
 
 
+def dataset_part_identity(data: DONDataset, supervised: bool) -> PartIdentity | None:
+    """The part (and for supervised methods the descriptor field) that a network trained on ``data`` carries
+    in its checkpoint; None, with a warning, when the dataset's object cannot be loaded here."""
+    try:
+        part = data.object_model()
+    except DonGymError as exc:
+        warnings.warn(f"{exc}; the checkpoint will carry no part identity (matched to parts by name)", stacklevel=2)
+        return None
+    return PartIdentity.of(part, data.descriptor_field() if supervised else None)
+
+
+@dataclass
+class _RunStart:
+    """Rank 0's verdict on the run directory, broadcast to every process."""
+
+    error: str | None = None
+    state: dict[str, Any] | None = None
+    rows: list[dict[str, str]] = field(default_factory=list)
+
+
+def _inspect_run_dir(out: Path, config: TrainConfig, identity: str, resume: bool) -> _RunStart:
+    """Read-only: the state to resume from (None: start afresh), or a user error."""
+    if out.exists() and not out.is_dir():
+        raise DonGymError(f"--out {out}: is a file; expected a run directory (new or to --resume)")
+    state_path = out / TRAIN_STATE
+    if not state_path.exists():
+        # No progress saved (e.g. a run that failed before its first checkpoint): nothing to keep.
+        return _RunStart()
+    if not resume:
+        raise DonGymError(f"{out}: already holds a training run; pass --resume to continue it or choose a new --out")
+    changed = _changed_settings(_read_saved_config(out / RUN_CONFIG), config, identity)
+    if changed:
+        raise DonGymError(
+            f"{out}: --resume with a different configuration than the saved {RUN_CONFIG} ({', '.join(changed)})"
+        )
+    state = _read_train_state(state_path)
+    return _RunStart(state=state, rows=_read_loss_rows(out / LOSS_CSV, int(state["step"])))
+
+
+def _open_source(config: TrainConfig) -> SupervisedFrames | CorrespondencePairs:
+    if is_supervised(config.method):
+        variant = SUPERVISED_TARGET_VARIANT[config.method]
+        return SupervisedFrames(config.data, variant=variant, crop_size=config.crop_size, seed=config.seed)
+    return CorrespondencePairs(
+        config.data, depth_source=config.depth_source, seed=config.seed, crop_size=config.crop_size
+    )
+
+
+@contextmanager
+def _terminate_as_exit() -> Iterator[None]:
+    """torchrun stops the other processes with SIGTERM when one fails; exiting through Python
+    (not at once) lets an interrupted atomic write remove its temporary file."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) != signal.SIG_DFL:
+        yield
+        return
+
+    def handler(signum: int, frame: Any) -> None:
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> TrainResult:
-    """Train a DON as configured; see the module docstring for what a run writes."""
-    validate_method(config.method)
-    if config.steps < 1:
-        raise DonGymError(f"steps must be >= 1, got {config.steps}")
-    out = Path(config.out)
-    device = _device(config.device)
+    """Train a DON as configured; see the module docstring for what a run writes.
+
+    Everything the configuration alone can get wrong is refused before any file is written.
+    Under torchrun (``WORLD_SIZE`` set) every process calls this and trains its share of each batch.
+    """
+    launch = launch_environment()
+    try:
+        validate_config(config)
+        device = resolve_device(config.device, launch)
+        amp_dtype = autocast_dtype(config.precision, device)
+        backend = resolve_backend(config.backend, device) if launch.world_size > 1 else ""
+        if config.batch_size % launch.world_size:
+            raise DonGymError(
+                f"batch_size {config.batch_size} must be a multiple of the number of processes ({launch.world_size})"
+            )
+    except DonGymError as exc:
+        raise same_on_every_process(exc) from None
     if config.threads is not None:
         torch.set_num_threads(int(config.threads))
-    torch.manual_seed(config.seed)
+    source = _open_source(config)
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+        torch.backends.cudnn.benchmark = True  # fixed crop sizes: pick the fastest kernels once
+    joined = start_process_group(launch, backend, device) if launch.world_size > 1 else False
+    try:
+        with _terminate_as_exit():
+            return _train(config, resume, progress, launch, device, amp_dtype, source)
+    finally:
+        if joined:
+            torch.distributed.destroy_process_group()
 
-    if is_supervised(config.method):
-        dataset: Any = SupervisedFrames(
-            config.data, variant=SUPERVISED_TARGET_VARIANT[config.method], crop_size=config.crop_size, seed=config.seed
-        )
-    else:
-        dataset = CorrespondencePairs(
-            config.data, depth_source=config.depth_source, seed=config.seed, crop_size=config.crop_size
-        )
-    info = dataset.data.info
-    intrinsics = dataset.data.scenes[0].intrinsics
+
+def _train(
+    config: TrainConfig,
+    resume: bool,
+    progress: bool,
+    launch: LaunchEnvironment,
+    device: torch.device,
+    amp_dtype: torch.dtype | None,
+    source: SupervisedFrames | CorrespondencePairs,
+) -> TrainResult:
+    out = Path(config.out)
+    info = source.data.info
+    intrinsics = source.data.scenes[0].intrinsics
     image_size = (intrinsics.width, intrinsics.height)
+    identity = dataset_identity(source.data)
+    supervised = is_supervised(config.method)
+    part_identity = dataset_part_identity(source.data, supervised) if launch.is_main else None
 
-    model = DenseObjectNet(config.arch, int(info["descriptor_dim"]), pretrained_path=config.pretrained_path).to(device)
+    torch.manual_seed(config.seed)
+    model = DenseObjectNet(config.arch, int(info["descriptor_dim"])).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate(), weight_decay=config.weight_decay)
     scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=config.lr_decay_every, gamma=config.lr_decay)
-    augment_config = AugmentConfig(**config.augment)
+    scaler = torch.amp.GradScaler(device.type) if amp_dtype == torch.float16 else None
 
+    def start() -> _RunStart:
+        """Rank 0: everything that reads the run directory or pretrained weights, then the first write."""
+        try:
+            run = _inspect_run_dir(out, config, identity, resume)
+            if run.state is None and config.pretrained_path is not None:
+                # Other processes receive these weights with DistributedDataParallel's first broadcast.
+                model.load_pretrained_encoder(config.pretrained_path)
+            with _writing(out / RUN_CONFIG):
+                out.mkdir(parents=True, exist_ok=True)
+                saved = {**asdict(config), DATASET_IDENTITY_KEY: identity}
+                write_text_atomic(out / RUN_CONFIG, json.dumps(saved, indent=1) + "\n")
+        except DonGymError as exc:
+            return _RunStart(error=str(exc))
+        return run
+
+    run = broadcast_from_main(start() if launch.is_main else None)
+    if run.error is not None:
+        raise same_on_every_process(DonGymError(run.error))
     start_step = 0
     # Training time and images of earlier sessions of a resumed run; None when unknown.
     earlier_seconds: float | None = 0.0
     earlier_images: int | None = 0
-    rows: list[dict[str, Any]] = []
-    state_path = out / TRAIN_STATE
-    if resume and state_path.is_file():
-        saved_config = json.loads((out / RUN_CONFIG).read_text())
-        wanted = json.loads(json.dumps(asdict(config)))
-        # A resumed run may train for longer or checkpoint at another interval; anything else
-        # would silently change what the first steps meant.
-        changed = sorted(k for k in wanted if k not in RESUMABLE_CHANGES and saved_config.get(k) != wanted[k])
-        if changed:
-            raise DonGymError(
-                f"{out}: --resume with a different configuration than the saved {RUN_CONFIG} ({', '.join(changed)})"
-            )
-        state = torch.load(state_path, map_location=device, weights_only=True)
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
+    if run.state is not None:
+        state = run.state
+        try:
+            model.load_state_dict(state["model"])
+            optimizer.load_state_dict(state["optimizer"])
+            scheduler.load_state_dict(state["scheduler"])
+            if scaler is not None and "scaler" in state:
+                scaler.load_state_dict(state["scaler"])
+        except (KeyError, RuntimeError, ValueError) as exc:
+            detail = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            raise same_on_every_process(
+                DonGymError(f"{out / TRAIN_STATE}: does not fit this run's network or optimiser ({detail})")
+            ) from None
         start_step = int(state["step"])
         earlier_seconds = float(state["seconds"]) if "seconds" in state else None
         earlier_images = int(state["images_seen"]) if "images_seen" in state else None
-        rows = _read_loss_rows(out / LOSS_CSV, start_step)
-    elif out.exists() and (out / RUN_CONFIG).exists() and not resume:
-        raise DonGymError(f"{out}: already holds a training run; pass --resume to continue it or choose a new --out")
-    out.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(out / RUN_CONFIG, json.dumps(asdict(config), indent=1) + "\n")
+    rows: list[dict[str, Any]] = list(run.rows)
+    del run
+
+    net: torch.nn.Module = model
+    if launch.world_size > 1:
+        synchronize_batchnorm(model, device)
+        net = torch.nn.parallel.DistributedDataParallel(
+            model, device_ids=[device.index] if device.type == "cuda" else None
+        )
+    batches = StepBatches(
+        source, config.steps, config.batch_size, config.seed, AugmentConfig(**config.augment), launch.rank,
+        launch.world_size,
+    )  # fmt: skip
+    loader = step_loader(batches, start_step, config.workers, pin_memory=device.type == "cuda")
+    images_per_step = config.batch_size * (1 if supervised else 2)
+    title = f"{config.method} on {info['object']} ({config.arch})"
 
     def save_state(step: int) -> None:
-        with atomic_path(state_path) as tmp:
-            torch.save(
-                {
-                    "model": model.state_dict(),
-                    "optimizer": optimizer.state_dict(),
-                    "scheduler": scheduler.state_dict(),
-                    "step": step,
-                    **(
-                        {}
-                        if earlier_seconds is None or earlier_images is None
-                        else {
-                            "seconds": earlier_seconds + time.perf_counter() - start_time,
-                            "images_seen": earlier_images + images_seen,
-                        }
-                    ),
-                },
-                tmp,
-            )
-        _write_loss_csv(out / LOSS_CSV, rows)
+        state_path = out / TRAIN_STATE
+        with _writing(state_path):
+            with atomic_path(state_path) as tmp:
+                torch.save(
+                    {
+                        "model": model.state_dict(),
+                        "optimizer": optimizer.state_dict(),
+                        "scheduler": scheduler.state_dict(),
+                        "step": step,
+                        **({} if scaler is None else {"scaler": scaler.state_dict()}),
+                        **(
+                            {}
+                            if earlier_seconds is None or earlier_images is None
+                            else {
+                                "seconds": earlier_seconds + time.perf_counter() - start_time,
+                                "images_seen": earlier_images + images_seen,
+                            }
+                        ),
+                    },
+                    tmp,
+                )
+        with _writing(out / LOSS_CSV):
+            _write_loss_csv(out / LOSS_CSV, rows)
 
-    model.train()
+    def save(step: int, path: Path) -> None:
+        """Rank 0: the weights at ``path``, then the state and losses (a crash in between keeps the older state)."""
+        if not launch.is_main:
+            return
+        with _writing(path):
+            save_checkpoint(path, model, checkpoint_metadata(config, info, image_size, step), identity=part_identity)
+        save_state(step)
+        with _writing(out / LOSS_PNG):
+            plot_loss_curve(rows, out / LOSS_PNG, title)
+
+    step_loss = _supervised_step_loss if supervised else _contrastive_step_loss(config)
+    net.train()
     images_seen = 0
-    start_time = time.perf_counter()
+    data_wait = 0.0
+    start_time = steady_from = time.perf_counter()
     bar = tqdm(
         range(start_step, config.steps),
         initial=start_step,
         total=config.steps,
         desc=config.method,
         unit="step",
-        disable=not progress,
+        disable=not (progress and launch.is_main),
     )
+    batch_iterator = iter(loader)
     for step in bar:
-        generator = _step_generator(config.seed, step)
-        index_rng = np.random.default_rng([config.seed, step])
-        if is_supervised(config.method):
-            dataset.epoch = step
-            items = [dataset[int(i)] for i in index_rng.integers(len(dataset), size=config.batch_size)]
-            rgb = torch.stack([it["rgb"] for it in items]).to(device)
-            target = torch.stack([it["target"] for it in items]).to(device)
-            mask = torch.stack([it["object_mask"] for it in items]).to(device)
-            pred = model(augment(rgb, mask, generator, augment_config))
-            loss = supervised_l2_loss(pred, target, mask)
-            stats: dict[str, float] = {}
+        waited_from = time.perf_counter()
+        batch = next(batch_iterator)
+        arrived = time.perf_counter()
+        if step == start_step:
+            steady_from = arrived  # the first batch's wait is the workers' start-up, not their pace
         else:
-            items = [dataset[step * config.batch_size + k] for k in range(config.batch_size)]
-            rgb_a = torch.stack([it["rgb_a"] for it in items]).to(device)
-            rgb_b = torch.stack([it["rgb_b"] for it in items]).to(device)
-            mask_a = torch.stack([it["object_mask_a"] for it in items]).to(device)
-            mask_b = torch.stack([it["object_mask_b"] for it in items]).to(device)
-            both = model(
-                torch.cat(
-                    [
-                        augment(rgb_a, mask_a, generator, augment_config),
-                        augment(rgb_b, mask_b, generator, augment_config),
-                    ]
+            data_wait += arrived - waited_from
+        if "error" in batch:
+            raise batch["error"]
+        try:
+            with torch.autocast(device.type, dtype=amp_dtype) if amp_dtype is not None else nullcontext():
+                loss, stats = step_loss(net, batch, device)
+            optimizer.zero_grad(set_to_none=True)
+            (loss if scaler is None else scaler.scale(loss)).backward()
+            # The loss of the whole batch (mean over processes) decides, on every process alike.
+            logged = _batch_means(loss, stats, launch.world_size)
+            if not math.isfinite(logged["loss"]):
+                raise same_on_every_process(
+                    DonGymError(
+                        f"loss became {logged['loss']} at step {step + 1} (lr {config.learning_rate():g}); lower --lr "
+                        "(the run directory keeps its last checkpoint)"
+                    )
                 )
-            )
-            desc_a, desc_b = both[: len(items)], both[len(items) :]
-            loss, stats = batch_contrastive_loss(
-                desc_a, desc_b, [it["correspondences"] for it in items], config.object_margin, config.background_margin
-            )
-        if not torch.isfinite(loss):
-            raise RuntimeError(f"loss became {loss.item()} at step {step}; lower --lr")
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        scheduler.step()
-        images_seen += config.batch_size * (1 if is_supervised(config.method) else 2)
+            if scaler is None:
+                optimizer.step()
+            else:
+                scaler.step(optimizer)
+                scaler.update()
+            scheduler.step()
+        except RuntimeError as exc:
+            if launch.world_size == 1:
+                raise
+            # gloo prefixes its messages with a source location and appends advice; keep the finding.
+            detail = re.sub(r"^\[[^\]]*\]\s*", "", (str(exc).strip().splitlines() or [type(exc).__name__])[0])
+            detail = detail.split(". ")[0]
+            raise DonGymError(
+                f"rank {launch.rank}: step {step + 1} failed ({detail}); another process has probably stopped. "
+                f"The last checkpoint in {out} is intact: rerun with --resume"
+            ) from None
+        images_seen += images_per_step
         rate = images_seen / (time.perf_counter() - start_time)
         rows.append(
             {
                 "step": step + 1,
-                "loss": f"{loss.item():.6g}",
+                "loss": f"{logged['loss']:.6g}",
                 "lr": f"{scheduler.get_last_lr()[0]:.3g}",
-                **{k: f"{v:.6g}" for k, v in stats.items()},
+                **{k: f"{v:.6g}" for k, v in logged.items() if k != "loss"},
             }
         )
-        bar.set_postfix(loss=f"{loss.item():.4f}", img_s=f"{rate:.1f}")
+        bar.set_postfix(loss=f"{logged['loss']:.4f}", img_s=f"{rate:.1f}")
         done = step + 1
         if done % config.checkpoint_every == 0 or done == config.steps:
-            save_checkpoint(
-                out / "checkpoints" / f"step_{done:06d}.safetensors",
-                model,
-                checkpoint_metadata(config, info, image_size, done),
-            )
-            save_state(done)
-            plot_loss_curve(rows, out / LOSS_PNG, f"{config.method} on {info['object']} ({config.arch})")
+            save(done, out / "checkpoints" / f"step_{done:06d}.safetensors")
     bar.close()
+    del batch_iterator  # stops the loader's worker processes
     seconds = time.perf_counter() - start_time
-    save_checkpoint(out / FINAL_MODEL, model, checkpoint_metadata(config, info, image_size, config.steps))
-    save_state(config.steps)
-    plot_loss_curve(rows, out / LOSS_PNG, f"{config.method} on {info['object']} ({config.arch})")
+    save(config.steps, out / FINAL_MODEL)
     final_loss = float(np.mean([float(r["loss"]) for r in rows[-max(1, len(rows) // 20) :]]))
+    steady_seconds = start_time + seconds - steady_from if config.steps > start_step + 1 else 0.0
+    wait_fraction = data_wait / steady_seconds if steady_seconds > 0 else None
     if earlier_seconds is None or earlier_images is None:
-        return TrainResult(out / FINAL_MODEL, final_loss, config.steps, None, None)
+        return TrainResult(out / FINAL_MODEL, final_loss, config.steps, None, None, wait_fraction)
     total_seconds = earlier_seconds + seconds
     total_images = earlier_images + images_seen
     return TrainResult(
-        out / FINAL_MODEL, final_loss, config.steps, total_seconds, total_images / max(total_seconds, 1e-9)
+        out / FINAL_MODEL,
+        final_loss,
+        config.steps,
+        total_seconds,
+        total_images / max(total_seconds, 1e-9),
+        wait_fraction,
     )
+
+
+def _to_device(tensor: torch.Tensor, device: torch.device) -> torch.Tensor:
+    # Batches come pinned when the device is a GPU, so the copy overlaps with queued work.
+    return tensor.to(device, non_blocking=True)
+
+
+def _channels_last(rgb: torch.Tensor, device: torch.device) -> torch.Tensor:
+    # The network computes in channels-last; on a GPU the input is converted once, on arrival.
+    rgb = _to_device(rgb, device)
+    return rgb.contiguous(memory_format=torch.channels_last) if device.type == "cuda" else rgb
+
+
+def _supervised_step_loss(
+    net: torch.nn.Module, batch: dict[str, Any], device: torch.device
+) -> tuple[torch.Tensor, dict[str, float]]:
+    pred = net(_channels_last(batch["rgb"], device))
+    # The loss sums ~10^5 pixels: float32 even under autocast.
+    loss = supervised_l2_loss(
+        pred.float(), _to_device(batch["target"], device), _to_device(batch["object_mask"], device)
+    )
+    return loss, {}
+
+
+def _contrastive_step_loss(config: TrainConfig) -> Callable[..., tuple[torch.Tensor, dict[str, float]]]:
+    def step_loss(
+        net: torch.nn.Module, batch: dict[str, Any], device: torch.device
+    ) -> tuple[torch.Tensor, dict[str, float]]:
+        both = net(_channels_last(torch.cat([batch["rgb_a"], batch["rgb_b"]]), device)).float()
+        pairs = len(batch["correspondences"])
+        return batch_contrastive_loss(
+            both[:pairs], both[pairs:], batch["correspondences"], config.object_margin, config.background_margin
+        )
+
+    return step_loss
+
+
+def _batch_means(loss: torch.Tensor, stats: dict[str, float], world_size: int) -> dict[str, float]:
+    """Loss and statistics of the whole step's batch: means over processes, except counts (``num_*``), summed."""
+    stats = {k: v for k, v in stats.items() if k != "loss"}  # the same quantity as ``loss``
+    if world_size == 1:
+        return {"loss": loss.item(), **stats}
+    names = ["loss", *stats]
+    values = torch.tensor([loss.item(), *(float(stats[k]) for k in stats)], dtype=torch.float64, device=loss.device)
+    values = all_reduce_sum(values)
+    divisors = [1.0 if name.startswith("num_") else world_size for name in names]
+    return {name: value / divisor for name, value, divisor in zip(names, values.tolist(), divisors, strict=True)}

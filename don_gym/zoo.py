@@ -10,9 +10,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from don_gym.checkpoints import CheckpointMetadata, check_metadata, load_checkpoint, read_checkpoint_metadata
+from don_gym.checkpoints import (
+    CheckpointMetadata,
+    check_metadata,
+    load_checkpoint,
+    part_mismatch,
+    read_checkpoint_metadata,
+)
 from don_gym.errors import CheckpointError
 from don_gym.model import DenseObjectNet
+from don_gym.objects import ObjectModel
 
 SHIPPED_DIR = Path(__file__).resolve().parent / "shipped"
 
@@ -20,6 +27,14 @@ SHIPPED_DIR = Path(__file__).resolve().parent / "shipped"
 def shipped_names() -> list[str]:
     """Short names of the networks in this installation, e.g. ``["shaft/self-supervised", ...]``."""
     return sorted(f"{p.parent.name}/{p.stem}" for p in SHIPPED_DIR.glob("*/*.safetensors"))
+
+
+def shipped_names_for(part: ObjectModel) -> list[str]:
+    """Short names of the shipped networks trained on ``part``, matched by its geometry
+    (:func:`~don_gym.checkpoints.part_mismatch`), not by its name."""
+    return [
+        name for name in shipped_names() if part_mismatch(read_checkpoint_metadata(shipped_path(name)), part) is None
+    ]
 
 
 def shipped_path(name: str) -> Path:
@@ -32,9 +47,11 @@ def shipped_path(name: str) -> Path:
 
 
 def is_checkpoint_reference(name_or_path: str | Path) -> bool:
-    """True for a path to an existing file or a shipped short name."""
+    """True for a path to an existing file, a training run directory (with ``model.safetensors``) or a
+    shipped short name: what :func:`checkpoint_path` resolves."""
     text = str(name_or_path)
-    return Path(text).is_file() or (SHIPPED_DIR / f"{text}.safetensors").is_file()
+    path = Path(text)
+    return path.is_file() or (path / "model.safetensors").is_file() or (SHIPPED_DIR / f"{text}.safetensors").is_file()
 
 
 def checkpoint_path(name_or_path: str | Path) -> Path:
@@ -61,12 +78,13 @@ def read_don_metadata(
     expect_object: str | None = None,
     expect_descriptor_dim: int | None = None,
     expect_method: str | None = None,
+    expect_part: ObjectModel | None = None,
 ) -> CheckpointMetadata:
     """What :func:`load_don` would check and return as metadata, without loading the weights
     (training image size, object, method, ...); CheckpointError naming what differs."""
     path = checkpoint_path(name_or_path)
     metadata = read_checkpoint_metadata(path)
-    check_metadata(metadata, str(path), expect_object, expect_descriptor_dim, expect_method)
+    check_metadata(metadata, str(path), expect_object, expect_descriptor_dim, expect_method, expect_part=expect_part)
     return metadata
 
 
@@ -76,9 +94,11 @@ def load_don(
     expect_descriptor_dim: int | None = None,
     expect_method: str | None = None,
     map_location: str = "cpu",
+    expect_part: ObjectModel | None = None,
 ) -> tuple[DenseObjectNet, CheckpointMetadata]:
     """Load a shipped network by short name, a checkpoint file or a training run directory
-    (its ``model.safetensors``), checking expectations.
+    (its ``model.safetensors``), checking expectations (``expect_part``: the part it must have been
+    trained on, by geometry; ``expect_object``: its recorded name).
 
     Returns ``(model in eval mode, metadata)``; raises CheckpointError naming what differs.
     """
@@ -88,4 +108,5 @@ def load_don(
         expect_descriptor_dim=expect_descriptor_dim,
         expect_method=expect_method,
         map_location=map_location,
+        expect_part=expect_part,
     )

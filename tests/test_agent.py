@@ -12,13 +12,13 @@ import torch
 import don_gym  # noqa: F401 - registers the envs
 from don_gym.agents import AxisGraspAgent
 from don_gym.build import DatasetConfig, build_dataset
+from don_gym.descriptor_sources import OracleDescriptors, axis_end_targets, descriptor_field_for
 from don_gym.errors import DonGymError
 from don_gym.geometry import make_transform, transform_points
 from don_gym.model import DenseObjectNet
 from don_gym.objects import load_object
 from don_gym.sim.task import OUTCOMES
 from don_gym.train import TrainConfig, train
-from don_gym.wrappers import OracleDescriptors, axis_end_targets, descriptor_field_for
 from don_gym.zoo import read_don_metadata, shipped_names
 
 
@@ -176,7 +176,7 @@ def _run_one_grasp(env: gym.Env, agent: AxisGraspAgent) -> dict:
 
 def test_agent_runs_end_to_end_with_a_trained_network(env_320, tiny_checkpoint: str) -> None:
     # From a checkpoint trained towards the optimal field: references from the field.
-    agent = AxisGraspAgent.for_env(env_320, model=tiny_checkpoint)
+    agent = AxisGraspAgent(env_320, model=tiny_checkpoint)
     assert agent.method == "supervised-edge" and agent.source.reference_from_field
     np.testing.assert_allclose(agent.reference_descriptors, agent.targets.descriptors)
     # A tiny network trained on 96x72 images in a 320x240 env: it runs, and says it is off its scale.
@@ -185,7 +185,7 @@ def test_agent_runs_end_to_end_with_a_trained_network(env_320, tiny_checkpoint: 
     # The same network without metadata: its descriptor space is unknown, so its references come
     # from a reference frame, i.e. its own output at the rings' pixels in that frame.
     network: DenseObjectNet = agent.source.network
-    bare = AxisGraspAgent.for_env(env_320, model=network)
+    bare = AxisGraspAgent(env_320, model=network)
     assert bare.method == "network" and not bare.source.reference_from_field
     assert not np.allclose(bare.reference_descriptors, agent.reference_descriptors, atol=1e-3)
     _run_one_grasp(env_320, bare)
@@ -207,7 +207,7 @@ def env_shipped():
 @pytest.mark.skipif(not TOOLCAP_SHIPPED, reason="no shipped toolcap networks installed (benchmarks/train_shipped.py)")
 @pytest.mark.parametrize("name", TOOLCAP_SHIPPED or ["none"])
 def test_agent_runs_end_to_end_with_shipped_networks(env_shipped, name: str) -> None:
-    agent = AxisGraspAgent.for_env(env_shipped, model=name)
+    agent = AxisGraspAgent(env_shipped, model=name)
     assert agent.method == name.split("/")[1]
     assert agent.reference_descriptors.shape == (2, agent.source.descriptor_dim)
     with warnings.catch_warnings():

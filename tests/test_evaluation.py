@@ -12,6 +12,7 @@ import torch
 from don_gym.build import DatasetConfig, build_dataset
 from don_gym.checkpoints import save_checkpoint
 from don_gym.cli import main
+from don_gym.descriptor_sources import DescriptorSource
 from don_gym.errors import DonGymError
 from don_gym.evaluation import (
     TrackingConfig,
@@ -24,7 +25,6 @@ from don_gym.evaluation import (
 from don_gym.geometry import CameraIntrinsics, make_transform
 from don_gym.model import DenseObjectNet
 from don_gym.objects import load_object
-from don_gym.wrappers.descriptors import DescriptorSource
 
 torch.set_num_threads(1)
 

@@ -6,10 +6,11 @@ import dataclasses
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
-from don_gym.cli import main
+from don_gym.cli import build_parser, main
 from don_gym.errors import DonGymError
 from don_gym.grasp_benchmark import (
     DEFAULT_IMAGE_SIZE,
@@ -20,6 +21,7 @@ from don_gym.grasp_benchmark import (
     episode_tasks,
     outcome_table,
     parse_sensor,
+    random_pose_seed,
     run_grasp_benchmark,
     sweep_table,
     training_image_size,
@@ -45,7 +47,7 @@ def test_tiny_oracle_benchmark_counts_files_and_determinism(tmp_path: Path) -> N
     assert all(e["outcome"] == "grasp_and_place" for e in result.episodes), result.episodes
     assert all(e["position_error_m"] < 0.003 and not e["flipped"] for e in result.episodes)
     assert result.counts("ideal") == {"oracle": {"fail": 0, "grasp_only": 0, "grasp_and_place": 2}}
-    assert "| oracle | 2/2 | 0/2 | 0/2 | 2/2 | 0 |" in outcome_table(result)
+    assert "| oracle | 2/2 (34-100%) | 0/2 (0-66%) | 0/2 (0-66%) | 2/2 (34-100%) | 0 |" in outcome_table(result)
 
     # One process, episodes in the reverse order (another env history): identical records.
     runner = EpisodeRunner(config)
@@ -77,7 +79,7 @@ def test_sweep_table_and_seeds() -> None:
         for t, o in zip(tasks, ("grasp_and_place", "grasp_only", "grasp_only", "fail"), strict=True)
     ]
     table = sweep_table(GraspBenchmarkResult(TINY, fake, 1.0))
-    assert "| oracle | 1 / 2 | 0 / 1 |" in table
+    assert "| oracle | 1 (9-91%) / 2 (34-100%) | 0 (0-66%) / 1 (9-91%) |" in table
 
 
 def test_bad_inputs_fail_before_any_episode(tmp_path: Path, capsys) -> None:
@@ -102,3 +104,49 @@ def test_image_size_defaults_to_the_networks_training_size() -> None:
     assert training_image_size({"a": (640, 480), "b": (640, 480)}) == (640, 480)
     with pytest.raises(DonGymError, match=r"different image sizes \(a 640x480, b 320x240\)"):
         training_image_size({"a": (640, 480), "b": (320, 240)})
+
+
+def test_random_poses_are_seeded_shared_by_every_method_and_not_the_fixed_ones(tmp_path: Path) -> None:
+    from don_gym.sim.task import FIXED_POSES
+
+    config = dataclasses.replace(TINY, poses=(0,), random_poses=1)
+    tasks = episode_tasks(dataclasses.replace(config, methods=("oracle", "toolcap/supervised-edge")))
+    random_tasks = [t for t in tasks if t.random_pose is not None]
+    # Every (sensor, method) gets random pose 0, with one seed derived from the benchmark seed alone.
+    assert len(random_tasks) == 4 and {t.seed for t in random_tasks} == {random_pose_seed(0, 0)}
+    assert all(t.pose_id is None and t.repeat == 0 for t in random_tasks)
+    assert random_pose_seed(0, 0) not in {episode_seed(0, p, r) for p in range(8) for r in range(3)}
+    assert random_pose_seed(1, 0) != random_pose_seed(0, 0) != random_pose_seed(0, 1)
+
+    result = run_grasp_benchmark(config, workers=1, progress=False)
+    fixed = [e for e in result.episodes if e["random_pose"] is None]
+    random = [e for e in result.episodes if e["random_pose"] is not None]
+    assert [e["sensor"] for e in random] == ["ideal", "d435"] and len(fixed) == 2
+    # The same part pose under both sensors (the seed draws the pose before any sensor noise) ...
+    assert random[0]["true_action"] == random[1]["true_action"]
+    # ... and not one of the fixed poses: its grasp point is centimetres from each of theirs.
+    x, y = random[0]["true_action"][:2]
+    assert min(np.hypot(x - px, y - py) for px, py, _ in FIXED_POSES) > 0.01
+    assert result.counts("ideal", "random") == {"oracle": {"fail": 0, "grasp_only": 0, "grasp_and_place": 1}}
+    assert result.counts("ideal") == {"oracle": {"fail": 0, "grasp_only": 0, "grasp_and_place": 1}}
+    random_table = outcome_table(result, poses="random")
+    assert "1 random poses" in random_table and "| oracle | 1/1 (21-100%) |" in random_table
+    assert "1 fixed poses x 1 repeats" in outcome_table(result)
+    paths = write_grasp_outputs(result, tmp_path)
+    assert "### Outcomes at random poses" in paths["table"].read_text()
+    assert paths["outcomes_random"].read_bytes()[:4] == b"\x89PNG"
+    summary = json.loads(paths["json"].read_text())["summary"]["random_pose_results"]
+    assert summary["d435"]["oracle"]["interval_95"]["grasped"][0] == pytest.approx(0.2065, abs=1e-4)
+
+
+def test_random_poses_option_parsing(capsys) -> None:
+    args = build_parser().parse_args(["benchmark", "grasp", "--random-poses", "3"])
+    assert args.random_poses == 3
+    assert build_parser().parse_args(["benchmark", "grasp"]).random_poses == 0
+    for value in ("0", "-2", "1.5", "many"):
+        with pytest.raises(SystemExit) as exit_info:
+            main(["benchmark", "grasp", "--random-poses", value])
+        assert exit_info.value.code == 2
+        err = capsys.readouterr().err
+        assert err.startswith("don-gym benchmark grasp: error: argument --random-poses: ") and err.count("\n") == 1
+        assert "positive whole number" in err

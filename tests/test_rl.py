@@ -1,4 +1,4 @@
-"""RL baselines (don_gym.agents.rl): the observation/action interfaces and short PPO and SAC runs."""
+"""RL baselines: the wrappers of don_gym.wrappers.rl and short PPO and SAC runs of don_gym.agents.rl."""
 
 from __future__ import annotations
 
@@ -11,6 +11,16 @@ from gymnasium import spaces
 
 from don_gym.agents import rl
 from don_gym.errors import DonGymError
+from don_gym.plotting import plot_learning_curve
+from don_gym.wrappers.rl import (
+    GRASP_OFFSET_XY_M,
+    KEYPOINT_OFFSET_UNIT_M,
+    POSITION_UNIT_M,
+    WORKSPACE_CENTRE_M,
+    KeypointFeatures,
+    KeypointGraspAction,
+    keypoint_centroid,
+)
 
 
 class _DictEnv(gym.Env):
@@ -41,9 +51,9 @@ def _keypoint_space(k: int = 2, robot: bool = True) -> spaces.Dict:
 
 
 def test_keypoint_features_layout_and_missing_keypoints():
-    env = rl.KeypointFeatures(_DictEnv(_keypoint_space(3)), relative_to="tcp", robot_state=True)
+    env = KeypointFeatures(_DictEnv(_keypoint_space(3)), relative_to="tcp", robot_state=True)
     assert env.observation_space.shape == (3 + 4 * 3 + 8,)
-    unit, centre = rl.POSITION_UNIT_M, rl.WORKSPACE_CENTRE_M
+    unit, centre = POSITION_UNIT_M, WORKSPACE_CENTRE_M
     tcp = np.array([0.5, 0.1, 0.2])
     points = np.array([[0.50, 0.00, 0.03], [0.60, 0.05, 0.03], [0.0, 0.0, 0.45]])
     # The third keypoint was not found (no depth): confidence 0, its point is the camera centre.
@@ -66,27 +76,27 @@ def test_keypoint_features_layout_and_missing_keypoints():
     np.testing.assert_allclose(features[18:22], [0, 0, 0, 1])
     assert features[22] == pytest.approx(2.0)
 
-    centred = rl.KeypointFeatures(_DictEnv(_keypoint_space(3, robot=False)), relative_to="centroid")
+    centred = KeypointFeatures(_DictEnv(_keypoint_space(3, robot=False)), relative_to="centroid")
     assert centred.observation_space.shape == (3 + 4 * 3,)
     offsets = centred.observation(observation)[3:12].reshape(3, 3)
-    np.testing.assert_allclose(offsets[:2], (points[:2] - centroid) / rl.KEYPOINT_OFFSET_UNIT_M, atol=1e-4)
+    np.testing.assert_allclose(offsets[:2], (points[:2] - centroid) / KEYPOINT_OFFSET_UNIT_M, atol=1e-4)
     np.testing.assert_array_equal(offsets[2], 0.0)
 
     nothing = dict(observation, keypoint_confidence=np.zeros(3, np.float32))
-    assert rl.keypoint_centroid(points, np.zeros(3)) is None
+    assert keypoint_centroid(points, np.zeros(3)) is None
     np.testing.assert_array_equal(env.observation(nothing)[:15], 0.0)
 
 
 def test_wrappers_reject_envs_they_cannot_serve():
     plain = spaces.Dict({"ee_pose": spaces.Box(-1.0, 1.0, shape=(7,), dtype=np.float32)})
     with pytest.raises(DonGymError, match="KeypointObservation"):
-        rl.KeypointFeatures(_DictEnv(plain))
+        KeypointFeatures(_DictEnv(plain))
     with pytest.raises(DonGymError, match="ee_pose"):
-        rl.KeypointFeatures(_DictEnv(_keypoint_space(robot=False)), relative_to="tcp")
+        KeypointFeatures(_DictEnv(_keypoint_space(robot=False)), relative_to="tcp")
     with pytest.raises(DonGymError, match="control='grasp'"):
-        rl.KeypointGraspAction(_DictEnv(_keypoint_space(), control="ee"))
+        KeypointGraspAction(_DictEnv(_keypoint_space(), control="ee"))
     with pytest.raises(DonGymError, match="action_frame"):
-        rl.KeypointGraspAction(_DictEnv(_keypoint_space()), frame="camera")
+        KeypointGraspAction(_DictEnv(_keypoint_space()), frame="camera")
     with pytest.raises(DonGymError, match="algorithm"):
         rl.train("dqn", 10)
 
@@ -115,19 +125,19 @@ def sb3():
 
 
 def test_ppo_on_grasp_with_keypoints(sb3, tmp_path):
-    env_kwargs = {"image_size": (64, 48), "sensor": "ideal"}
+    env_kwargs = {"image_size": (64, 48), "sensor": "ideal", "action_frame": "keypoints"}
     # The action frame is the keypoint centroid of the reset observation: action 0 grasps there.
     env = rl.make_ppo_env(**env_kwargs)
     observation, _ = env.reset(seed=3)
     assert env.observation_space.shape == (11,) and env.observation_space.contains(observation)
     grasp_wrapper = env.env
-    assert isinstance(grasp_wrapper, rl.KeypointGraspAction)
-    centroid = rl.WORKSPACE_CENTRE_M + observation[:3] * rl.POSITION_UNIT_M
+    assert isinstance(grasp_wrapper, KeypointGraspAction)
+    centroid = WORKSPACE_CENTRE_M + observation[:3] * POSITION_UNIT_M
     action = grasp_wrapper.grasp_action(np.array([0.0, 0.0, 0.0, 0.0, 1.0]))
     np.testing.assert_allclose(action[:3], centroid, atol=1e-6)
     assert action[3] == pytest.approx(np.pi / 2)
     shifted = grasp_wrapper.grasp_action(np.array([1.0, -1.0, 0.0, -1.0, 0.0]))
-    np.testing.assert_allclose(shifted[:2] - centroid[:2], [rl.GRASP_OFFSET_XY_M, -rl.GRASP_OFFSET_XY_M], atol=1e-6)
+    np.testing.assert_allclose(shifted[:2] - centroid[:2], [GRASP_OFFSET_XY_M, -GRASP_OFFSET_XY_M], atol=1e-6)
     assert abs(shifted[3]) == pytest.approx(np.pi)
     # The oracle's keypoints lie on the part: its true position is within a few centimetres.
     true_position = env.unwrapped.task.part.T_world_object[:3, 3]
@@ -158,7 +168,7 @@ def test_ppo_on_grasp_with_keypoints(sb3, tmp_path):
     action, _ = model.predict(observation, deterministic=True)
     assert model.action_space.contains(action.astype(np.float32))
 
-    rl.plot_learning_curve([("ppo", curve)], tmp_path / "curve.png", window=8, title="t")
+    plot_learning_curve([("ppo", curve.rolling(8))], tmp_path / "curve.png", window=8, title="t")
     assert (tmp_path / "curve.png").stat().st_size > 1000
 
 

@@ -3,16 +3,25 @@
 from __future__ import annotations
 
 import csv
+import errno
+import json
+import shutil
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
+import don_gym.train as train_module
+from don_gym.augment import AugmentConfig
 from don_gym.build import DatasetConfig, build_dataset
 from don_gym.checkpoints import load_checkpoint
+from don_gym.cli import main as cli_main
 from don_gym.errors import CheckpointError, DonGymError
-from don_gym.train import TrainConfig, train
+from don_gym.model import DenseObjectNet
+from don_gym.torch_data import CorrespondencePairs, StepBatches, SupervisedFrames, step_loader
+from don_gym.train import TRAIN_STATE, TrainConfig, train
 
 
 @pytest.fixture(scope="module")
@@ -68,3 +77,203 @@ def test_same_seed_same_curve_and_exact_resume(tiny_dataset: str, tmp_path: Path
     assert again.seconds == pytest.approx(resumed.seconds, rel=0.05) and again.final_loss == resumed.final_loss
     with pytest.raises(DonGymError, match="already holds"):
         train(config, progress=False)
+
+
+# --- data loading in worker processes ----------------------------------------------------------
+
+
+def _batches(loader) -> list[dict]:
+    return [batch for batch in loader]
+
+
+def test_a_steps_batch_depends_only_on_seed_and_step(tiny_dataset: str) -> None:
+    """Whatever the number of worker processes, the starting step or the number of training
+    processes, step s gets the same images, crops and augmentation."""
+    augment = AugmentConfig()
+    frames = SupervisedFrames(tiny_dataset, variant="edge", crop_size=(40, 32), seed=1)
+    whole = StepBatches(frames, steps=5, batch_size=4, seed=1, augment_config=augment)
+    in_loop = _batches(step_loader(whole, 0, workers=0))
+    in_workers = _batches(step_loader(whole, 2, workers=2))
+    assert len(in_loop) == 5 and len(in_workers) == 3
+    for a, b in zip(in_loop[2:], in_workers, strict=True):
+        for key in ("rgb", "target", "object_mask"):
+            assert torch.equal(a[key], b[key]), key
+    assert in_loop[0]["rgb"].shape == (4, 3, 32, 40) and not torch.equal(in_loop[0]["rgb"], in_loop[1]["rgb"])
+    shares = [StepBatches(frames, 5, 4, 1, augment, rank=r, world_size=2)[3] for r in (0, 1)]
+    for key in ("rgb", "target", "object_mask"):
+        assert torch.equal(torch.cat([s[key] for s in shares]), in_loop[3][key]), key
+    pairs = CorrespondencePairs(tiny_dataset, depth_source="ideal", seed=1, crop_size=(40, 32))
+    pair_batches = StepBatches(pairs, steps=2, batch_size=2, seed=1, augment_config=augment)
+    first, again = _batches(step_loader(pair_batches, 1, workers=1))[0], pair_batches[1]
+    assert torch.equal(first["rgb_b"], again["rgb_b"]) and len(first["correspondences"]) == 2
+    np.testing.assert_array_equal(first["correspondences"][1].matches_a, again["correspondences"][1].matches_a)
+    with pytest.raises(DonGymError, match="multiple"):
+        StepBatches(frames, 5, 3, 1, augment, rank=0, world_size=2)
+
+
+def test_workers_train_the_same_curve(tiny_dataset: str, tmp_path: Path) -> None:
+    config = replace(_config("supervised-mask", tiny_dataset, tmp_path / "w0", steps=3), checkpoint_every=3)
+    train(config, progress=False)
+    result = train(replace(config, out=str(tmp_path / "w2"), workers=2), progress=False)
+    np.testing.assert_array_equal(_losses(tmp_path / "w0"), _losses(tmp_path / "w2"))
+    assert result.data_wait_fraction is not None and 0.0 <= result.data_wait_fraction < 1.0
+
+
+# --- configuration and run-directory errors ----------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"batch_size": 0}, "batch_size"),
+        ({"checkpoint_every": 0}, "checkpoint_every"),
+        ({"threads": 0}, "threads"),
+        ({"workers": -1}, "workers"),
+        ({"lr": float("nan")}, "lr"),
+        ({"lr": 1e30}, "lr"),
+        ({"steps": 0}, "steps"),
+        ({"seed": -1}, "seed"),
+        ({"weight_decay": float("inf")}, "weight_decay"),
+        ({"crop_size": (0, 8)}, "crop_size"),
+        ({"augment": {"blur": 1.0}}, "augment"),
+        ({"augment": {"hue": 0.9}}, "hue"),
+        ({"device": "tpu"}, "tpu"),
+        ({"precision": "int8"}, "precision"),
+        ({"backend": "mpi"}, "backend"),
+        ({"arch": "resnet50"}, "resnet50"),
+        ({"method": "magic"}, "magic"),
+        ({"depth_source": "lidar"}, "lidar"),
+        ({"pretrained_path": "x.pth"}, "no ImageNet layout"),
+        ({"data": "/no/such/dataset"}, "does not exist"),
+    ],
+)
+def test_bad_settings_are_refused_before_anything_is_written(
+    change: dict, message: str, tiny_dataset: str, tmp_path: Path
+) -> None:
+    config = replace(_config("supervised", tiny_dataset, tmp_path / "run"), **change)
+    with pytest.raises(DonGymError, match=message):
+        train(config, progress=False)
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message of a machine without CUDA")
+def test_cuda_without_a_gpu_is_one_line(tiny_dataset: str, tmp_path: Path, capsys) -> None:
+    args = ["train", "--method", "supervised", "--data", tiny_dataset, "--out", str(tmp_path / "run")]
+    for extra in (["--device", "cuda"], ["--precision", "fp16"], ["--workers", "-1"], ["--lr", "nan"]):
+        assert cli_main([*args, *extra]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert not (tmp_path / "run").exists()
+
+
+def test_out_that_is_a_file_and_failed_writes(tiny_dataset: str, tmp_path: Path, monkeypatch, capsys) -> None:
+    (tmp_path / "file").write_text("not a run")
+    with pytest.raises(DonGymError, match="is a file"):
+        train(_config("supervised", tiny_dataset, tmp_path / "file"), progress=False)
+    config = replace(_config("supervised", tiny_dataset, tmp_path / "run", steps=2), checkpoint_every=1)
+
+    def full_disk(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    # A full file system at the first checkpoint: one line; the run directory stays usable.
+    monkeypatch.setattr(train_module, "save_checkpoint", full_disk)
+    with pytest.raises(DonGymError, match="cannot write .*step_000001.safetensors: No space left"):
+        train(config, progress=False)
+    assert not (tmp_path / "run" / TRAIN_STATE).exists()
+    monkeypatch.undo()
+
+    # A read-only file system from the start: the CLI prints one line.
+    def read_only(*args, **kwargs):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(train_module, "write_text_atomic", read_only)
+    args = ["train", "--method", "supervised", "--data", tiny_dataset, "--out", str(tmp_path / "ro"), "--steps", "1"]
+    assert cli_main(args) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Read-only file system" in err, err
+    monkeypatch.undo()
+    # A config.json without progress (the run above failed before its first state) blocks nothing.
+    assert (tmp_path / "run" / "config.json").is_file()
+    train(config, progress=False)
+    assert len(_losses(tmp_path / "run")) == 2
+
+
+def test_loss_that_becomes_nan_is_one_line(tiny_dataset: str, tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.setattr(train_module, "supervised_l2_loss", lambda pred, *a: pred.sum() * float("nan"))
+    with pytest.raises(DonGymError, match="loss became nan at step 1.*lower --lr"):
+        train(_config("supervised", tiny_dataset, tmp_path / "run", steps=2), progress=False)
+
+
+def test_resume_does_not_depend_on_path_spelling(tiny_dataset: str, tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    # Every session saves its state when it ends; checkpoints in between would only cost time.
+    config = replace(_config("supervised", tiny_dataset, Path("run"), steps=2), checkpoint_every=100)
+    train(config, progress=False)
+    train(replace(config, out="./run", steps=3), resume=True, progress=False)
+    train(replace(config, out=str(tmp_path / "run"), steps=4), resume=True, progress=False)
+    shutil.move(tmp_path / "run", tmp_path / "moved")
+    shutil.copytree(tiny_dataset, tmp_path / "data_copy")  # the same dataset elsewhere
+    train(replace(config, out="moved", data="data_copy", steps=5), resume=True, progress=False)
+    reference = train(replace(config, out="straight", steps=5), progress=False)
+    np.testing.assert_allclose(_losses(tmp_path / "moved"), _losses(tmp_path / "straight"), rtol=1e-5)
+    assert "/" not in json.loads((tmp_path / "moved" / "config.json").read_text())["out"]
+    assert reference.steps == 5
+
+
+def test_damaged_run_directory_is_one_line(tiny_dataset: str, tmp_path: Path) -> None:
+    config = replace(_config("supervised", tiny_dataset, tmp_path / "run", steps=1), checkpoint_every=1)
+    train(config, progress=False)
+    more = replace(config, steps=2)
+    state = (tmp_path / "run" / TRAIN_STATE).read_bytes()
+    (tmp_path / "run" / TRAIN_STATE).write_bytes(state[: len(state) // 2])
+    with pytest.raises(DonGymError, match=f"{TRAIN_STATE}: cannot be read"):
+        train(more, resume=True, progress=False)
+    (tmp_path / "run" / TRAIN_STATE).write_bytes(state)
+    (tmp_path / "run" / "config.json").write_text("{not json")
+    with pytest.raises(DonGymError, match="config.json: cannot be read as JSON"):
+        train(more, resume=True, progress=False)
+    (tmp_path / "run" / "config.json").unlink()
+    with pytest.raises(DonGymError, match="config.json: missing"):
+        train(more, resume=True, progress=False)
+
+
+# --- pretrained weights and the GPU path ---------------------------------------------------------
+
+
+def test_pretrained_encoder_from_a_torchvision_layout_file(tiny_dataset: str, tmp_path: Path, capsys) -> None:
+    torch.manual_seed(5)
+    source = DenseObjectNet("resnet18").encoder.state_dict()
+    state = {k: v for k, v in source.items() if not k.endswith("num_batches_tracked")}
+    state |= {"fc.weight": torch.zeros(1000, 512), "fc.bias": torch.zeros(1000)}  # torchvision's classifier
+    torch.save(state, tmp_path / "resnet18.pth")
+    config = replace(
+        _config("supervised", tiny_dataset, tmp_path / "run", steps=1), arch="resnet18", lr=1e-7, batch_size=1,
+        crop_size=(32, 32), checkpoint_every=1, pretrained_path=str(tmp_path / "resnet18.pth"),
+    )  # fmt: skip
+    model, _ = load_checkpoint(train(config, progress=False).model_path)
+    trained = model.encoder.state_dict()
+    assert torch.allclose(trained["layer3.1.conv2.weight"], state["layer3.1.conv2.weight"], atol=1e-5)
+    state["layer2.0.downsample.0.weight"] = torch.zeros(128, 64, 3, 3)
+    torch.save(state, tmp_path / "bad_shape.pth")
+    torch.save({"weights": [1, 2]}, tmp_path / "not_a_state_dict.pth")
+    args = ["train", "--method", "supervised", "--data", tiny_dataset, "--arch", "resnet18", "--steps", "1"]
+    for name, expected in (("bad_shape", "layer2.0.downsample.0.weight: file (128, 64, 3, 3)"),
+                           ("not_a_state_dict", "'weights' is a list")):  # fmt: skip
+        out = tmp_path / f"run_{name}"
+        assert cli_main([*args, "--out", str(out), "--pretrained", str(tmp_path / f"{name}.pth")]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and expected in err, err
+        assert not out.exists()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU; this machine has none")
+def test_cuda_mixed_precision_follows_fp32(tiny_dataset: str, tmp_path: Path) -> None:
+    config = replace(_config("supervised-edge", tiny_dataset, tmp_path / "fp32", steps=4), device="cuda")
+    train(replace(config, precision="fp32"), progress=False)
+    train(replace(config, out=str(tmp_path / "amp"), precision="auto", workers=1), progress=False)
+    train(replace(config, out=str(tmp_path / "fp16"), precision="fp16"), progress=False)
+    train(replace(config, out=str(tmp_path / "cpu"), device="cpu"), progress=False)
+    fp32 = _losses(tmp_path / "fp32")
+    np.testing.assert_allclose(fp32, _losses(tmp_path / "cpu"), rtol=1e-3)
+    np.testing.assert_allclose(_losses(tmp_path / "amp"), fp32, rtol=0.05)
+    np.testing.assert_allclose(_losses(tmp_path / "fp16"), fp32, rtol=0.05)

@@ -14,6 +14,13 @@ from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 import don_gym  # noqa: F401 - registers the envs
 from don_gym.checkpoints import CheckpointMetadata, save_checkpoint
+from don_gym.descriptor_sources import (
+    OracleDescriptors,
+    ReferenceFrame,
+    axis_end_targets,
+    load_descriptor_source,
+    reference_descriptors_for,
+)
 from don_gym.errors import CheckpointError, DonGymError
 from don_gym.geometry import CameraIntrinsics, make_transform, pixel_rays, transform_points
 from don_gym.keypoints import (
@@ -29,16 +36,7 @@ from don_gym.keypoints import (
 )
 from don_gym.model import DenseObjectNet
 from don_gym.objects import load_object
-from don_gym.wrappers import (
-    DESCRIPTOR_BOUND,
-    DescriptorObservation,
-    KeypointObservation,
-    OracleDescriptors,
-    ReferenceFrame,
-    axis_end_targets,
-    load_descriptor_source,
-    reference_descriptors_for,
-)
+from don_gym.wrappers import DESCRIPTOR_BOUND, DescriptorObservation, KeypointObservation
 
 
 @pytest.fixture(autouse=True)
@@ -167,6 +165,14 @@ def _quiet_check(env: gym.Env) -> None:
         warnings.filterwarnings("ignore", message=".*is an image but.*")
         check_env(env, skip_render_check=True)
         sb3_check_env(env, warn=True, skip_render_check=True)
+
+
+def test_wrappers_package_re_exports_the_descriptor_sources() -> None:
+    import don_gym.descriptor_sources as core
+    import don_gym.wrappers as wrappers
+
+    for name in ("DescriptorSource", "ReferenceFrame", "load_descriptor_source", "axis_end_targets"):
+        assert getattr(wrappers, name) is getattr(core, name)
 
 
 def test_descriptor_observation_passes_both_env_checkers(ee_env) -> None:

@@ -1,54 +1,60 @@
-"""Gymnasium observation wrappers that add DON descriptors to don_gym observations.
+"""Gymnasium wrappers that add DON descriptors and keypoints to don_gym observations (``don_gym.wrappers``).
 
-Installed as ``don_gym.wrappers``.
+- :class:`DescriptorObservation` adds ``descriptors`` (H, W, D) from a descriptor source: ``"oracle"``,
+  a shipped network (``"toolcap/supervised-edge"``), a checkpoint path or a DenseObjectNet.
+- :class:`KeypointObservation` adds K tracked keypoints (``keypoint_pixels``, ``keypoint_points`` in
+  world metres, ``keypoint_confidence``); by default the two axis-end rings of :func:`axis_end_targets`.
+- :class:`KeypointFeatures` and :class:`KeypointGraspAction`: flat observations and normalised grasp
+  actions for RL policies.
+- :class:`SimulatedKeypoints` (a model of the DON, no rendering), :class:`KeypointGoal` (goals for HER),
+  :class:`DescriptorImage` (uint8 descriptor images for CNN policies), :class:`VectorKeypointObservation`
+  (one DON pass per vector-env step).
 
-- :class:`DescriptorObservation` adds ``descriptors`` (H, W, D) float32 computed from ``rgb`` by a
-  descriptor source: ``"oracle"`` (optimal descriptors rendered from the true poses, the upper
-  bound), a shipped network's short name (``"toolcap/supervised-edge"``), a checkpoint path or a
-  :class:`~don_gym.model.DenseObjectNet`.
-- :class:`KeypointObservation` adds K tracked keypoints: ``keypoint_pixels`` (K, 2),
-  ``keypoint_points`` (K, 3) world metres, ``keypoint_confidence`` (K,); by default the two
-  axis-end keypoints of :func:`axis_end_targets`; ``keep_images=False`` gives a compact
-  observation for RL.
-- :func:`load_descriptor_source` and the :class:`DescriptorSource` classes are the model
-  abstraction for evaluation code; :func:`reference_descriptors_for` gives any model's descriptors
-  of chosen object surface points (from the optimal field, or from a :class:`ReferenceFrame`).
-
-Example::
+The descriptor sources and reference descriptors live in :mod:`don_gym.descriptor_sources`; their
+names are re-exported here. Example::
 
     env = KeypointObservation(gym.make("DONToolcapPick-v0", image_size=(320, 240)), model="oracle")
     obs, info = env.reset(options={"pose_id": 0})
     obs["keypoint_points"]  # (2, 3): minus-end and plus-end ring of the toolcap, world metres
 """
 
-from don_gym.wrappers.descriptors import (
-    DESCRIPTOR_BOUND,
-    DescriptorObservation,
+from don_gym.descriptor_sources import (
+    AxisEndTargets,
     DescriptorSource,
     NetworkDescriptors,
     OracleDescriptors,
     ReferenceFrame,
+    axis_end_targets,
+    default_reference_descriptors,
     descriptor_field_for,
     env_object_model,
     load_descriptor_source,
     reference_descriptors_for,
 )
-from don_gym.wrappers.keypoints import (
-    AxisEndTargets,
-    KeypointObservation,
-    axis_end_targets,
-    default_reference_descriptors,
-)
+from don_gym.wrappers.descriptors import DESCRIPTOR_BOUND, DescriptorObservation
+from don_gym.wrappers.goals import KeypointGoal
+from don_gym.wrappers.images import DescriptorImage
+from don_gym.wrappers.keypoints import KeypointObservation
+from don_gym.wrappers.rl import KeypointFeatures, KeypointGraspAction
+from don_gym.wrappers.simulated_keypoints import KeypointNoiseModel, SimulatedKeypoints
+from don_gym.wrappers.vector import VectorKeypointObservation
 
 __all__ = [
     "DESCRIPTOR_BOUND",
     "AxisEndTargets",
+    "DescriptorImage",
     "DescriptorObservation",
     "DescriptorSource",
+    "KeypointFeatures",
+    "KeypointGoal",
+    "KeypointGraspAction",
+    "KeypointNoiseModel",
     "KeypointObservation",
     "NetworkDescriptors",
     "OracleDescriptors",
     "ReferenceFrame",
+    "SimulatedKeypoints",
+    "VectorKeypointObservation",
     "axis_end_targets",
     "default_reference_descriptors",
     "descriptor_field_for",

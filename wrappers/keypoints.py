@@ -1,27 +1,11 @@
-"""Axis-end keypoint targets and the KeypointObservation wrapper.
+"""The KeypointObservation wrapper: K keypoints tracked in each observation's descriptor image.
 
-:func:`axis_end_targets` chooses, from the object model, the two surface keypoints of the
-paper's axis grasp (Kupcsik et al. 2021, "Grasp Pose Prediction"). Rule: along the +axis (through
-the centre of mass), take the axial levels at ``fractions`` (default 20 % and 80 %) of the part's
-axial length, from the minus end; at each, the *outer* surface there: mesh vertices within
-``slab`` of the nearest level that carries outer-surface vertices, and whose distance from the axis
-is within 5 % of the largest at that level (so a bore or an end face's inner rim is never chosen).
-On a part lying on its side, the outer surface at both levels faces up, whatever the roll. With
-symmetric (GISIF) descriptors all points of such a ring share one descriptor, so the keypoint is
-the whole ring: its reference descriptor is the mean of the field over it, and the ring's axial
-position and radius let an agent go from the seen surface back to the axis. 20 %/80 % keep both
-rings off the end faces and edges (where descriptors blend into the background in learned nets)
-while leaving them as far apart as that allows, for an accurate axis direction.
-
-:class:`KeypointObservation` adds, for K reference descriptors, ``keypoint_pixels`` (K, 2),
-``keypoint_points`` (K, 3) in the world and ``keypoint_confidence`` (K,), using
-:func:`don_gym.keypoints.locate_keypoints` on the descriptor image of a
-:class:`~don_gym.wrappers.descriptors.DescriptorObservation`.
+Keypoint matching is :func:`don_gym.keypoints.locate_keypoints`; the default keypoints are the
+axis-end rings of :func:`don_gym.descriptor_sources.axis_end_targets`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +13,14 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from don_gym.descriptors import DescriptorField
+from don_gym.descriptor_sources import (
+    AxisEndTargets,
+    DescriptorSource,
+    ReferenceFrame,
+    axis_end_targets,
+    default_reference_descriptors,
+    descriptor_field_for,
+)
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics
 from don_gym.keypoints import (
@@ -40,109 +31,14 @@ from don_gym.keypoints import (
     locate_keypoints,
 )
 from don_gym.model import DenseObjectNet
-from don_gym.objects import ObjectModel
-from don_gym.wrappers.descriptors import (
-    DescriptorObservation,
-    DescriptorSource,
-    ReferenceFrame,
-    descriptor_field_for,
-    field_descriptors,
-    reference_descriptors_for,
-)
+from don_gym.wrappers.descriptors import DescriptorObservation
 
-#: Axial fractions (from the minus end) of the two axis-end keypoints.
-DEFAULT_AXIS_FRACTIONS = (0.2, 0.8)
 #: Soft-match disc radius (m) for reference descriptors given by the user.
 DEFAULT_WINDOW_M = 0.02
 #: World-coordinate bound of ``keypoint_points`` (m); the env's poses use the same.
 POINT_BOUND_M = 10.0
 #: Keys dropped with ``keep_images=False``.
 IMAGE_KEYS = ("rgb", "depth", "descriptors")
-
-
-@dataclass(frozen=True)
-class AxisEndTargets:
-    """The two axis-end keypoints of an object (see the module docstring).
-
-    Attributes:
-        surface_points: two (N_k, 3) arrays of object-frame surface points in metres, minus end first.
-        axial_positions_m: (2,) position of each ring along the +axis from the centre of mass.
-        radii_m: (2,) mean distance of each ring's points from the axis.
-        descriptors: (2, D) float32 mean optimal-field descriptor of each ring.
-        fractions: the axial fractions asked for.
-    """
-
-    surface_points: tuple[np.ndarray, np.ndarray]
-    axial_positions_m: np.ndarray
-    radii_m: np.ndarray
-    descriptors: np.ndarray
-    fractions: tuple[float, float]
-
-    @property
-    def window_m(self) -> float:
-        """Soft-match radius that spans a whole ring's visible arc from any point of it: its diameter."""
-        return float(2.0 * np.max(self.radii_m))
-
-
-def axis_end_targets(
-    object_model: ObjectModel,
-    field: DescriptorField | None = None,
-    fractions: tuple[float, float] = DEFAULT_AXIS_FRACTIONS,
-    slab_m: float | None = None,
-) -> AxisEndTargets:
-    """The two axis-end keypoints of ``object_model`` (rule in the module docstring).
-
-    Args:
-        object_model: the part (its ``plus_axis`` and mesh).
-        field: its optimal descriptor field (None: :func:`descriptor_field_for` with 3 dimensions).
-        fractions: (minus-end, plus-end) axial fractions in (0, 1), the first smaller.
-        slab_m: half-width of the axial slab of one ring (None: 1 % of the axial length, at least 0.1 mm).
-    """
-    f1, f2 = (float(f) for f in fractions)
-    if not (0.0 < f1 < f2 < 1.0):
-        raise DonGymError(f"fractions={fractions!r}: expected 0 < minus-end fraction < plus-end fraction < 1")
-    field = field if field is not None else descriptor_field_for(object_model)
-    axis = np.asarray(object_model.plus_axis, dtype=np.float64)
-    vertices = np.asarray(object_model.mesh.vertices, dtype=np.float64)
-    along = (vertices - object_model.center_of_mass) @ axis
-    radius = np.linalg.norm((vertices - object_model.center_of_mass) - np.outer(along, axis), axis=1)
-    length = float(along.max() - along.min())
-    slab = float(slab_m) if slab_m is not None else max(0.01 * length, 1e-4)
-    # Outer surface: within 5 % of the largest radius among vertices at (about) the same level.
-    order = np.argsort(along)
-    sorted_along = along[order]
-    lo = np.searchsorted(sorted_along, along - slab, side="left")
-    hi = np.searchsorted(sorted_along, along + slab, side="right")
-    level_max = np.array([radius[order[a:b]].max() for a, b in zip(lo, hi, strict=True)])
-    outer = radius >= 0.95 * level_max
-    sets, positions, radii = [], [], []
-    for fraction in (f1, f2):
-        target = along.min() + fraction * length
-        nearest = float(along[outer][np.argmin(np.abs(along[outer] - target))])
-        chosen = outer & (np.abs(along - nearest) <= slab)
-        sets.append(vertices[chosen])
-        positions.append(float(along[chosen].mean()))
-        radii.append(float(radius[chosen].mean()))
-    descriptors = field_descriptors(field, object_model.mesh, sets)
-    return AxisEndTargets(
-        surface_points=(sets[0], sets[1]),
-        axial_positions_m=np.asarray(positions),
-        radii_m=np.asarray(radii),
-        descriptors=descriptors,
-        fractions=(f1, f2),
-    )
-
-
-def default_reference_descriptors(
-    source: DescriptorSource, targets: AxisEndTargets, env: gym.Env | None, reference: ReferenceFrame | None = None
-) -> np.ndarray:
-    """(2, D) reference descriptors of the axis-end targets for ``source``: from the field when the
-    source reproduces it, else from ``reference`` (or :meth:`ReferenceFrame.from_env` of ``env``)."""
-    if reference is None and not source.reference_from_field:
-        if env is None:
-            raise DonGymError(f"a {source.method!r} model needs a reference frame or an env to take one from")
-        reference = ReferenceFrame.from_env(env)
-    return reference_descriptors_for(source, targets.surface_points, reference)
 
 
 class KeypointObservation(DescriptorObservation):
@@ -158,9 +54,9 @@ class KeypointObservation(DescriptorObservation):
         env: a don_gym env with images.
         model: as for :class:`DescriptorObservation`.
         reference_descriptors: (K, D) descriptors to track, D the model's. None: the two axis-end
-            keypoints of :func:`axis_end_targets` (the :class:`~don_gym.agents.AxisGraspAgent`'s),
-            their descriptors from the field or from ``reference_frame`` (see
-            :func:`~don_gym.wrappers.descriptors.reference_descriptors_for`).
+            keypoints of :func:`~don_gym.descriptor_sources.axis_end_targets` (the
+            :class:`~don_gym.agents.AxisGraspAgent`'s), their descriptors from the field or from
+            ``reference_frame`` (see :func:`~don_gym.descriptor_sources.reference_descriptors_for`).
         keep_images: False drops ``rgb``, ``depth`` and ``descriptors`` for a compact observation.
         reference_frame: frame to read the default reference descriptors from; given, it is used for
             every model (None: the field where the model reproduces it, else the env reset at a fixed

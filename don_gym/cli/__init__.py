@@ -2,8 +2,10 @@
 
 Each subcommand lives in its own module of this package with two functions:
 ``register(subparsers)`` adds its parser (keep imports there light) and
-``run(args) -> int`` does the work. User errors (:class:`don_gym.errors.DonGymError`)
-are printed as one line on stderr with exit status 2, never as a traceback.
+``run(args) -> int`` does the work and checks its outputs (:func:`don_gym.io.check_output_dir`)
+before it. User errors (:class:`don_gym.errors.DonGymError`, a bad option), file-system faults
+(``OSError``: a full or read-only disk, no permission) and Ctrl-C are printed as one line on
+stderr, never as a traceback: exit status 2, and 130 for an interrupt.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import argparse
 import importlib
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 from don_gym.errors import DonGymError
 
@@ -30,8 +33,15 @@ def parse_size(text: str, option: str = "size") -> tuple[int, int]:
     return width, height
 
 
+class _Parser(argparse.ArgumentParser):
+    """Usage errors (a bad choice, a missing value) as one line like every other error, with a pointer to --help."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="don-gym",
         description=(
             "Dense Object Nets in simulation: optimal descriptors from meshes (Kupcsik et al. 2021), "
@@ -49,13 +59,27 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def error_line(exc: BaseException) -> str:
+    """One line for a user error or a file-system fault; an ``OSError`` names its file."""
+    if isinstance(exc, OSError) and not isinstance(exc, DonGymError) and exc.filename is not None:
+        names = f"{exc.filename} -> {exc.filename2}" if exc.filename2 is not None else str(exc.filename)
+        text = f"{names}: {exc.strerror or exc}"
+    else:
+        text = str(exc) or type(exc).__name__
+    return " ".join(part.strip() for part in text.splitlines() if part.strip())
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+    except KeyboardInterrupt:
+        print("don-gym: interrupted", file=sys.stderr)
+        return 130
     try:
         return int(args.run(args) or 0)
-    except (DonGymError, FileNotFoundError, PermissionError, IsADirectoryError) as exc:
-        print(f"don-gym {args.command}: error: {exc}", file=sys.stderr)
+    except (DonGymError, OSError) as exc:  # OSError: a full or read-only disk, no permission, a missing file
+        print(f"don-gym {args.command}: error: {error_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"don-gym {args.command}: interrupted", file=sys.stderr)

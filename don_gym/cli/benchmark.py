@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from don_gym.objects import ObjectModel
 
 DESCRIPTION = """\
 Benchmarks in simulation.
@@ -12,6 +16,9 @@ axis-grasp agent grasps the part at the 8 fixed poses (env.reset(options={"pose_
 it in the handover cradle; outcomes fail / grasp only / grasp & place are counted. Repeats differ by
 the episode seed (depth-sensor noise and hand-eye calibration error); every method sees the same
 seeds. With several --sensors, a sweep from ideal depth to the D435 shows where each method breaks.
+--random-poses N adds N random poses (env.reset(seed), seeds derived from --seed: the same poses for
+every method and sensor), one episode each, reported in tables of their own. Rates carry their 95%
+Wilson interval.
 """
 
 EPILOG = """\
@@ -19,12 +26,23 @@ examples:
   don-gym benchmark grasp --quick
   don-gym benchmark grasp --methods oracle toolcap/supervised-edge --repeats 3 --sensors ideal d435 --out bench/
   don-gym benchmark grasp --methods oracle run/model.safetensors --sensors d435@0.25 d435@0.75 --out bench/
+  don-gym benchmark grasp --quick --random-poses 16
 
 sensors: presets (ideal, d435, d435-clean, kinect) or NAME@SEVERITY, the preset scaled towards the ideal
 sensor (d435@0.5 = half the D435's noise, holes and calibration error). The last sensor is the headline
 one (outcome table and bar chart). --out writes grasp_episodes.json (every episode), grasp.md (tables),
-grasp_outcomes.png and, with several sensors, grasp_sweep.png.
+grasp_outcomes.png, with several sensors grasp_sweep.png and with --random-poses grasp_outcomes_random.png.
 """
+
+
+def _positive_count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a positive whole number of poses")
+    return value
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -55,6 +73,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     grasp.add_argument("--poses", nargs="+", type=int, default=None, help="fixed pose ids (default: 0..7)")
     grasp.add_argument("--repeats", type=int, default=None, help="episodes per method and pose (default: 3)")
     grasp.add_argument(
+        "--random-poses",
+        type=_positive_count,
+        default=0,
+        metavar="N",
+        help="also N seeded random poses, one episode each, in tables of their own (default: none)",
+    )
+    grasp.add_argument(
         "--sensors",
         nargs="+",
         default=None,
@@ -79,13 +104,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(run=run)
 
 
-def default_methods(object_name: str) -> list[str]:
-    """``oracle`` and those of the paper's three networks that are shipped for ``object_name``."""
-    from don_gym.grasp_benchmark import default_methods as paper_methods
-    from don_gym.zoo import shipped_names
+def default_methods(part: ObjectModel) -> list[str]:
+    """``oracle`` and those of the paper's three networks that are shipped for ``part`` (matched by its geometry)."""
+    from don_gym.grasp_benchmark import DEFAULT_METHODS
+    from don_gym.zoo import shipped_names_for
 
-    shipped = set(shipped_names())
-    return [m for m in paper_methods(object_name) if m == "oracle" or m in shipped]
+    by_method = {name.split("/", 1)[1]: name for name in shipped_names_for(part)}
+    methods = [m.split("/", 1)[-1] for m in DEFAULT_METHODS]
+    return [by_method.get(m, m) for m in methods if m == "oracle" or m in by_method]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -101,14 +127,18 @@ def run(args: argparse.Namespace) -> int:
         sweep_table,
         write_grasp_outputs,
     )
+    from don_gym.io import check_output_dir
+    from don_gym.objects import load_object
     from don_gym.sim.task import FIXED_POSES
 
     if args.workers < 1:
         raise DonGymError(f"--workers {args.workers}: expected at least 1")
+    if args.out is not None:
+        check_output_dir(args.out, "--out")
     torch.set_num_threads(1)
     repeats = args.repeats if args.repeats is not None else (1 if args.quick else 3)
     sensors = args.sensors if args.sensors is not None else (["d435"] if args.quick else list(DEFAULT_SENSORS))
-    methods = args.methods if args.methods is not None else default_methods(args.object)
+    methods = args.methods if args.methods is not None else default_methods(load_object(args.object))
     if args.methods is None and len(methods) == 1:
         print(f"note: no shipped networks for {args.object!r}; benchmarking the oracle only")
     config = GraspBenchmarkConfig(
@@ -116,6 +146,7 @@ def run(args: argparse.Namespace) -> int:
         methods=tuple(methods),
         poses=tuple(args.poses) if args.poses is not None else tuple(range(len(FIXED_POSES))),
         repeats=repeats,
+        random_poses=args.random_poses,
         sensors=tuple(sensors),
         image_size=None if args.image_size is None else parse_size(args.image_size, "--image-size"),
         renderer=args.renderer,
@@ -126,6 +157,9 @@ def run(args: argparse.Namespace) -> int:
     if len(config.sensors) > 1:
         print()
         print(sweep_table(result))
+    if config.random_poses:
+        print()
+        print(outcome_table(result, poses="random"))
     print()
     print(f"{len(result.episodes)} episodes in {result.seconds:.0f} s on {result.workers} worker(s)")
     if args.out is not None:

@@ -41,14 +41,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--no-fusion", action="store_true", help="skip TSDF depth fusion (supervised data only)")
     parser.add_argument("--seed", type=int, default=0, help="base seed; scene i uses a seed derived from (seed, i)")
     parser.add_argument("--workers", type=int, default=1, help="worker processes, one PyBullet client each")
-    parser.add_argument("--shard", default="0/1", help="i/n: build only scenes i, i+n, ... (for job arrays)")
-    parser.add_argument("--overwrite", action="store_true", help="delete OUT first if it holds something else")
+    parser.add_argument(
+        "--shard",
+        default="0/1",
+        help="i/n (0 <= i < n): build only scenes i, i+n, ...; shards may run at once, on several machines "
+        "sharing OUT (job arrays; README.md)",
+    )
+    parser.add_argument(
+        "--overwrite", action="store_true", help="delete OUT first (after all options are checked) and build anew"
+    )
     parser.add_argument("--out", required=True, help="output dataset directory")
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from don_gym.build import DatasetConfig, build_dataset, parse_shard
+    from don_gym.errors import DatasetError
 
     config = DatasetConfig(
         object=args.object,
@@ -63,11 +71,16 @@ def run(args: argparse.Namespace) -> int:
         symmetric=not args.no_symmetry,
         fuse_depth=not args.no_fusion,
     )
-    report = build_dataset(
-        config, args.out, workers=args.workers, shard=parse_shard(args.shard), overwrite=args.overwrite
-    )
+    shard = parse_shard(args.shard)
+    try:
+        report = build_dataset(config, args.out, workers=args.workers, shard=shard, overwrite=args.overwrite)
+    except OSError as exc:  # a full disk, a lost mount: what is finished stays valid, so say how to go on
+        raise DatasetError(
+            f"{args.out}: {exc}; every finished scene is kept: fix this and run the same command again to resume"
+        ) from exc
     print(
         f"{args.out}: wrote {report.scenes_written} scenes ({report.frames_written} frames, "
-        f"{report.frames_per_second:.1f} frames/s), skipped {report.scenes_skipped} finished scenes"
+        f"{report.frames_per_second:.1f} frames/s), skipped {report.scenes_skipped} finished scenes; "
+        f"{report.scenes_complete} of {report.scenes_total} scenes complete"
     )
     return 0

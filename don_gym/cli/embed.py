@@ -66,9 +66,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--method",
         choices=("auto", "direct", "multilevel"),
         default="auto",
-        help="eigensolver: 'direct' robust-laplacian + shift-invert Lanczos on the whole mesh, 'multilevel' "
-        "coarse-mesh solve refined on the full mesh (5x+ faster on large meshes, descriptors within ~0.01), "
-        "'auto' (default) direct below 10000 vertices",
+        help="eigensolver: 'direct' solves on the whole mesh (robust Laplacian, shift-invert Lanczos); "
+        "'multilevel' solves on a coarsened mesh and refines the eigenvectors on the full mesh (LOBPCG); "
+        "'auto' (default): direct below 10000 vertices, multilevel above (how close and how fast: "
+        "benchmarks/RESULTS.md)",
     )
     parser.add_argument("--out", metavar="FIELD.npz", default=None, help="write the descriptor field to this .npz")
     parser.add_argument(
@@ -92,18 +93,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import time
-    from pathlib import Path
 
     from don_gym.descriptors import DEFAULT_TOLERANCE, embed
-    from don_gym.errors import DonGymError
+    from don_gym.io import check_output_file
     from don_gym.objects import load_object
     from don_gym.plotting import DEFAULT_VIEWS, PLOT_SUFFIXES, plot_descriptor_field
 
-    # Check output names before the work, so that a typo does not cost the computation.
-    if args.out is not None and Path(args.out).suffix.lower() != ".npz":
-        raise DonGymError(f"--out {args.out!r}: expected a file name ending in .npz")
-    if args.plot is not None and Path(args.plot).suffix.lower() not in PLOT_SUFFIXES:
-        raise DonGymError(f"--plot {args.plot!r}: expected a file name ending in {', '.join(PLOT_SUFFIXES)}")
+    # Check outputs before the work, so that a typo or a read-only folder does not cost the computation.
+    if args.out is not None:
+        check_output_file(args.out, "--out", (".npz",))
+    if args.plot is not None:
+        check_output_file(args.plot, "--plot", tuple(PLOT_SUFFIXES))
 
     obj = load_object(args.mesh, scale=args.scale)
     tolerance = DEFAULT_TOLERANCE if args.tolerance is None else args.tolerance

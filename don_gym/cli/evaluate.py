@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from don_gym.objects import ObjectModel
 
 DESCRIPTION = """\
 Tracking-error evaluation (Kupcsik et al., AAAI 2021, Sec. "Quantitative Evaluation of Prediction
@@ -70,11 +74,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(run=run)
 
 
-def default_models(object_name: str) -> list[str]:
-    """``oracle`` and the shipped networks of ``object_name``."""
-    from don_gym.zoo import shipped_names
+def default_models(part: ObjectModel) -> list[str]:
+    """``oracle`` and the shipped networks trained on ``part`` (matched by its geometry)."""
+    from don_gym.zoo import shipped_names_for
 
-    return ["oracle", *[n for n in shipped_names() if n.split("/", 1)[0] == object_name]]
+    return ["oracle", *shipped_names_for(part)]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -89,9 +93,11 @@ def run(args: argparse.Namespace) -> int:
         tracking_table,
         write_tracking_outputs,
     )
+    from don_gym.io import check_output_dir
 
     if args.threads < 1:
         raise DonGymError(f"--threads {args.threads}: expected at least 1")
+    check_output_dir(args.out, "--out")
     torch.set_num_threads(args.threads)
     config = TrackingConfig(
         points_per_scene=args.points,
@@ -102,9 +108,9 @@ def run(args: argparse.Namespace) -> int:
     )
     config.validate()
     dataset = DONDataset(args.data)
-    models = args.models if args.models is not None else default_models(dataset_object(dataset).name)
+    models = args.models if args.models is not None else default_models(dataset_object(dataset))
     result = evaluate_tracking(dataset, models, config, progress=not args.no_progress)
+    print(tracking_table(result.summary()))  # before writing: a disk that fills up meanwhile loses no result
     paths = write_tracking_outputs(result, args.out)
-    print(tracking_table(result.summary()))
     print("wrote " + ", ".join(str(p) for p in paths.values()))
     return 0

@@ -25,11 +25,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from don_gym.dataset import DONDataset
+    from don_gym.errors import DatasetError
     from don_gym.export import export_scene_pdc
+    from don_gym.io import check_output_dir
 
+    check_output_dir(args.out, "--out")
     dataset = DONDataset(args.data)
     scenes = args.scene if args.scene else range(len(dataset.scenes))
+    for scene in scenes:  # all of them before writing any
+        if not 0 <= scene < len(dataset.scenes):
+            raise DatasetError(
+                f"--scene {scene}: no such scene; expected 0..{len(dataset.scenes) - 1}, the positions of the "
+                "dataset's complete scenes"
+            )
     for scene in scenes:
-        path = export_scene_pdc(dataset, scene, args.out)
+        try:
+            path = export_scene_pdc(dataset, scene, args.out)
+        except OSError as exc:  # a full disk, no permission: one line, as for the errors of the input
+            raise DatasetError(f"{args.out}: {exc}") from exc
         print(f"wrote {path}")
     return 0

@@ -15,7 +15,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=(
             f"Train a Dense Object Net on a dataset from 'don-gym build-dataset'. Methods: {methods}. "
             "Writes RUN/losses.csv, RUN/loss_curve.png, periodic checkpoints and RUN/model.safetensors. "
-            "A fixed --seed gives the same loss curve; --resume continues an interrupted run exactly."
+            "A fixed --seed gives the same loss curve; --resume continues an interrupted run exactly. "
+            "For several processes (GPUs, or CPU cores), launch with "
+            "'torchrun --standalone --nproc_per_node=N -m don_gym.cli train ...': --batch-size is then the "
+            "batch of one step over all processes, and rank 0 writes the run directory."
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
@@ -48,7 +51,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="CPU threads for torch (1 is fastest when other work shares the cores)",
     )
-    parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=0,
+        help="processes that load and augment batches (0: the training process does); results do not depend on it",
+    )
+    parser.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
+    parser.add_argument(
+        "--precision",
+        default="auto",
+        choices=["auto", "fp32", "bf16", "fp16"],
+        help="GPU arithmetic: auto = bf16 autocast where supported, else fp16 with a gradient scaler; CPU: fp32",
+    )
+    parser.add_argument(
+        "--backend",
+        default="auto",
+        help="torch.distributed backend under torchrun: auto (nccl on GPUs, gloo on CPUs), nccl or gloo",
+    )
     parser.add_argument("--resume", action="store_true", help="continue the run in --out")
     parser.set_defaults(run=run)
 
@@ -60,6 +80,9 @@ def _crop(text: str) -> tuple[int, int] | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from don_gym.distributed import launch_environment, reported_elsewhere, same_on_every_process
+    from don_gym.errors import DonGymError
+    from don_gym.io import check_output_dir
     from don_gym.train import TrainConfig, train
 
     config = TrainConfig(
@@ -77,12 +100,28 @@ def run(args: argparse.Namespace) -> int:
         device=args.device,
         crop_size=_crop(args.crop),
         threads=args.threads,
+        workers=args.workers,
+        precision=args.precision,
+        backend=args.backend,
     )
-    result = train(config, resume=args.resume)
+    launch = launch_environment()
+    try:
+        try:
+            check_output_dir(args.out, "--out")  # before the dataset and the network are loaded
+        except DonGymError as exc:
+            raise same_on_every_process(exc) from None  # the processes of a launch share --out
+        result = train(config, resume=args.resume)
+    except DonGymError as exc:
+        if reported_elsewhere(exc, launch):  # under torchrun, rank 0 prints what every process found
+            return 2
+        raise
+    if not launch.is_main:
+        return 0
     timing = (
         "training time unknown (resumed from an older state)"
         if result.seconds is None or result.images_per_second is None
         else f"in {result.seconds:.0f} s ({result.images_per_second:.1f} images/s)"
     )
-    print(f"{result.model_path}: {result.steps} steps {timing}, final loss {result.final_loss:.4g}")
+    waiting = "" if result.data_wait_fraction is None else f", {100 * result.data_wait_fraction:.0f}% waiting for data"
+    print(f"{result.model_path}: {result.steps} steps {timing}{waiting}, final loss {result.final_loss:.4g}")
     return 0

@@ -1,8 +1,6 @@
-"""A PyBullet physics client owned by one scene: named bodies, stepping, snapshots, renderer.
-
-Every PyBullet call in ``don_gym.sim`` goes through a :class:`Bullet` instance (its
-``client`` is a ``BulletClient(p.DIRECT)``), so several envs live side by side in one
-process and nothing touches PyBullet's implicit client 0.
+"""A PyBullet physics client owned by one scene (:class:`Bullet`): named bodies, stepping,
+snapshots, renderer. Every PyBullet call in ``don_gym.sim`` goes through one, so several envs
+live side by side in one process and nothing touches PyBullet's implicit client 0.
 """
 
 from __future__ import annotations
@@ -52,8 +50,8 @@ def silence_c_stdout() -> Iterator[None]:
 def pose_matrix(position: Sequence[float], quaternion_xyzw: Sequence[float]) -> np.ndarray:
     """(4, 4) transform from a PyBullet (position, quaternion) pair.
 
-    Same result as :func:`don_gym.geometry.transform_from_pose`, via PyBullet's C routine: the
-    env reads several poses per control step, and scipy's ``Rotation`` costs ~20 us each.
+    Same result as :func:`don_gym.geometry.transform_from_pose`, via PyBullet's C routine rather
+    than scipy's ``Rotation``: the env reads several poses per control step.
     """
     T = np.eye(4)
     T[:3, :3] = np.asarray(p.getMatrixFromQuaternion(quaternion_xyzw), dtype=np.float64).reshape(3, 3)
@@ -64,8 +62,8 @@ def pose_matrix(position: Sequence[float], quaternion_xyzw: Sequence[float]) -> 
 class _Client(BulletClient):
     """``BulletClient`` that remembers each bound PyBullet function after its first use.
 
-    ``BulletClient.__getattr__`` builds a new ``functools.partial`` on every call; the env makes
-    a few dozen calls per control step, where that costs a measurable share of the step.
+    ``BulletClient.__getattr__`` builds a new ``functools.partial`` on every call, and the env
+    makes a few dozen calls per control step.
     """
 
     def __getattr__(self, name: str):
@@ -84,8 +82,8 @@ class Bullet:
             by two fingers need many more than PyBullet's default of 50 to stay put.
         solver_residual: the solver stops iterating once its least-squares residual is below
             this (PyBullet's default 1e-7 makes it run all iterations nearly always). At 1e-5
-            resting and held parts behave the same (same outcomes, placement within 0.5 mm in
-            the oracle test) and contact-rich steps cost about half.
+            it stops early, and resting and held parts behave the same (same outcomes,
+            placement within 0.5 mm in the oracle test).
         renderer: ``"tiny"`` or ``"egl"``; ``"egl"`` loads the eglRenderer plugin on this
             client and falls back to ``"tiny"`` with a warning when that fails. The renderer
             actually in use is :attr:`renderer`.

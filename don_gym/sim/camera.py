@@ -1,30 +1,25 @@
 """Pinhole RGB-D rendering with PyBullet from OpenCV intrinsics and a ``T_world_camera`` pose.
 
 :func:`render_camera` is the one place that turns (intrinsics, pose) into PyBullet's OpenGL
-view/projection matrices and back into metric depth, so that the env, the dataset recorder
-and tests all see identical pixels for identical inputs.
-
-Renderers (``renderer=``):
-
-- ``"tiny"``: PyBullet's CPU TinyRenderer (``ER_TINY_RENDERER``). Always available and the
-  default everywhere in don_gym (env, tests, dataset recording), because its pixels do not
-  depend on the machine's OpenGL stack.
-- ``"egl"``: the ``eglRenderer`` plugin (``ER_BULLET_HARDWARE_OPENGL``), loaded per client by
-  :class:`don_gym.sim.bullet.Bullet`. On a machine without a GPU it runs on Mesa's software
-  OpenGL (llvmpipe) and is faster than TinyRenderer at larger image sizes. Its pixels differ
-  from TinyRenderer's (shading, anti-aliasing of edges), so a dataset and a model must name
-  the renderer they used.
+matrices and back into metric depth, so the env, the dataset recorder and tests see identical
+pixels for identical inputs.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pybullet as p
+from scipy.spatial.transform import Rotation
 
 from don_gym.errors import DonGymError
-from don_gym.geometry import CameraIntrinsics, invert_transform
+from don_gym.geometry import CameraIntrinsics, invert_transform, make_transform
 
-#: Renderer names accepted by :func:`render_camera` and the env.
+#: Renderer names accepted by :func:`render_camera` and the env. "tiny": PyBullet's CPU
+#: TinyRenderer (``ER_TINY_RENDERER``), always available and the default everywhere in don_gym,
+#: because its pixels do not depend on the machine's OpenGL stack. "egl": the ``eglRenderer``
+#: plugin (``ER_BULLET_HARDWARE_OPENGL``) loaded per client by :class:`don_gym.sim.bullet.Bullet`,
+#: on Mesa's software OpenGL (llvmpipe) without a GPU. Their pixels differ (shading, edge
+#: anti-aliasing), so a dataset and a model name the renderer they used.
 RENDERERS = ("tiny", "egl")
 
 #: Lower 24 bits of a PyBullet segmentation value hold the body id, the upper bits link index + 1.
@@ -39,6 +34,22 @@ _PRINCIPAL_POINT_OFFSET_PX = {"tiny": (0.0, 1.0), "egl": (0.5, 0.5)}
 
 # Fixed light so that renders do not depend on PyBullet's defaults changing between versions.
 _LIGHT_DIRECTION = (0.4, -0.3, 1.0)
+
+
+def look_at_camera_pose(eye_world: np.ndarray, target_world: np.ndarray, roll_rad: float = 0.0) -> np.ndarray:
+    """(4, 4) OpenCV ``T_world_camera`` at ``eye_world`` looking at ``target_world``.
+
+    With zero roll the image's "up" (-y) points as close to world +z as possible; ``roll_rad``
+    rotates the camera about its optical axis.
+    """
+    z_axis = np.asarray(target_world, float) - np.asarray(eye_world, float)
+    z_axis /= np.linalg.norm(z_axis)
+    helper = np.array([0.0, 0.0, 1.0]) if abs(z_axis[2]) < 0.999 else np.array([1.0, 0.0, 0.0])
+    x_axis = np.cross(z_axis, helper)
+    x_axis /= np.linalg.norm(x_axis)
+    y_axis = np.cross(z_axis, x_axis)
+    R = np.stack([x_axis, y_axis, z_axis], axis=1) @ Rotation.from_euler("z", roll_rad).as_matrix()
+    return make_transform(R, eye_world)
 
 
 def check_renderer(renderer: str) -> str:

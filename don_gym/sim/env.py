@@ -1,155 +1,175 @@
-"""Gymnasium env: a Panda with a wrist RGB-D camera picks a part and places it into a cradle.
-
-Registered ids (``import don_gym``): ``DONToolcapPick-v0`` (object="toolcap"),
-``DONShaftPick-v0`` (object="shaft") and ``DONPick-v0`` (``object=`` a built-in name or a
-mesh path, ``object_scale=`` its unit factor).
-
-Two control modes:
-
-- ``control="grasp"`` (the paper's experiment): one step per episode. The action is the
-  agent's belief ``[x, y, z, yaw]``: grasp point in the world (m) and world yaw (rad) of the
-  part's +axis. A scripted robot program (:mod:`don_gym.sim.script`) grasps there across the
-  axis, carries the part to the handover cradle and places it with the believed +axis along
-  the cradle's target direction. The observation at reset comes from a fixed observation
-  pose of the wrist camera 0.45 m above the workspace.
-- ``control="ee"`` (for RL): 25 Hz Cartesian control, action in [-1, 1]^5 =
-  (dx, dy, dz, dyaw, gripper) scaled by 5 cm, 5 cm, 5 cm, 0.25 rad and 2 cm of finger
-  opening per step; the hand stays top-down. Episodes are truncated after ``max_steps``.
-
-Observation (a flat Dict, SB3-compatible): ``rgb`` (H, W, 3) uint8 and ``depth`` (H, W)
-float32 metres (0 = no return) from the wrist camera through the depth-sensor model,
-``camera_intrinsics`` (6,) ``[fx, fy, cx, cy, W, H]``, ``camera_pose`` (4, 4) the *reported*
-``T_world_camera`` (true pose times the episode's hand-eye calibration error), and the robot
-state ``joint_positions`` (9,), ``ee_pose`` (7,) TCP position + quaternion (x, y, z, w) and
-``gripper_width`` (1,). ``observe_images=False`` (or ``image_size=None``) drops ``rgb`` and
-``depth`` and skips rendering. The true part pose and camera pose are only in ``info``.
-
-``info``: ``T_world_object``, ``T_world_camera`` (true), ``T_camera_reportedcamera``
-(calibration error), ``outcome`` in ("fail", "grasp_only", "grasp_and_place"),
-``is_success``, ``pose_id``, ``sensor``, ``renderer``, and after a step ``lifted``,
-``placement_distance_m``, ``placement_axis_error_rad``.
-
-Physics: 4 ms steps (1/250 s), up to 150 solver iterations, the part's collision shape made of
-convex pieces (:mod:`don_gym.sim.part`), mass and inertia from its density, gear-coupled fingers
-with friction 1.8 and 40 N each; nothing is attached to the hand, friction holds the part.
-
-Renderer: "tiny" (TinyRenderer) by default, for pixels identical on every machine; "egl" on
-request (falls back to "tiny" with a warning); ``info["renderer"]`` says which one ran. The
-wrist camera never sees the robot, so the robot is hidden while it renders (4x faster with
-TinyRenderer); ``render()`` (overview camera) shows everything.
-
-Default sensor "d435": the paper's wrist camera was a RealSense D435, and its missing depth on
-the steel part is what makes self-supervised DON training hard; ``sensor="ideal"`` gives exact
-depth (and no calibration error) for debugging.
+"""The Gymnasium env (:class:`PickPlaceEnv`): a Panda with a wrist RGB-D camera picks a part and
+places it into a handover cradle. It joins the robot (:mod:`~don_gym.sim.robot`), the task
+(:mod:`~don_gym.sim.task`), the wrist camera and its depth sensor (:mod:`~don_gym.sim.sensor`).
+Registered as ``DONToolcapPick-v0``, ``DONShaftPick-v0`` and ``DONPick-v0`` by ``import don_gym``.
 """
 
 from __future__ import annotations
 
 import contextlib
-import warnings
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
-from scipy.spatial.transform import Rotation
 
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics, make_transform
 from don_gym.objects import ObjectModel, load_object
 from don_gym.sim.bullet import Bullet, silence_c_stdout
-from don_gym.sim.camera import check_renderer, render_camera, specular_map
-from don_gym.sim.robot import (
-    T_HAND_CAMERA,
-    TCP_OFFSET_M,
-    Panda,
-    top_down_quaternion,
-    wrap_angle,
-    wrist_angle_estimate,
-)
-from don_gym.sim.script import MIN_TCP_HEIGHT_M, GraspPlaceScript
+from don_gym.sim.camera import check_renderer, look_at_camera_pose, render_camera, specular_map
+from don_gym.sim.robot import Panda, wrap_angle
+from don_gym.sim.script import GraspPlaceScript
+from don_gym.sim.sensor import get_sensor, sample_calibration_error, simulate_depth
 from don_gym.sim.task import (
     FIXED_POSES,
+    OBSERVATION_YAW_RAD,
+    REWARD_TYPES,
     TABLE_TOP_Z_M,
     WORKSPACE_M,
-    PartContacts,
+    Judgement,
     PickPlaceTask,
-    Placement,
     grasp_point_object,
+    observation_camera_position,
 )
 
-try:  # the sensor model lives in its own module; without it only the ideal sensor exists
-    from don_gym.sim import sensor as _sensor
-except ImportError:  # pragma: no cover - only while the module is missing
-    _sensor = None
-
 CONTROL_MODES = ("grasp", "ee")
-REWARD_TYPES = ("sparse", "dense")
+#: Keys of ``reset(options=...)``.
+RESET_OPTIONS = ("pose_id",)
 TIME_STEP_S = 1.0 / 250.0
 SOLVER_ITERATIONS = 150
 #: ee mode: 25 Hz control, 10 physics steps of 4 ms per env step.
 CONTROL_STEPS = 10
-EE_STEP_M = 0.05
-EE_YAW_STEP_RAD = 0.25
-EE_GRIPPER_STEP_M = 0.02
-#: ee mode: the TCP target is kept in this box (x0, x1, y0, y1, z0, z1), metres; its floor keeps
-#: the fingertips 3 mm above the table.
-EE_BOUNDS_M = (0.20, 0.80, -0.35, 0.60, TABLE_TOP_Z_M + MIN_TCP_HEIGHT_M, TABLE_TOP_Z_M + 0.45)
-#: ee mode: joint 7 stays this far inside its +-2.97 rad range.
-EE_WRIST_MAX_RAD = 2.85
-#: Wrist camera clip planes (m) and the largest depth an observation can hold.
+#: Wrist camera clip planes (m).
 NEAR_M, FAR_M = 0.05, 3.0
-MAX_DEPTH_M = 10.0
-#: Observation pose: wrist camera 0.45 m above the table over the workspace centre, looking down,
-#: image x along world +y (the long side of the image across the long side of the workspace).
-OBSERVATION_CAMERA_HEIGHT_M = 0.45
-OBSERVATION_YAW_RAD = 0.0
+#: Upper bound of the observation space's ``depth`` (m); sensor depth is clipped to it.
+DEPTH_OBS_MAX_M = 10.0
 #: Overview camera for render(): behind-right of the workspace, looking at it and the cradle.
 OVERVIEW_EYE_M = np.array([1.15, -0.55, 0.75])
 OVERVIEW_TARGET_M = np.array([0.45, 0.15, 0.02])
 
 
-def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """OpenCV ``T_world_camera`` at ``eye`` looking at ``target``, image up towards world +z."""
-    up = np.array([0.0, 0.0, 1.0])
-    z = target - eye
-    z = z / np.linalg.norm(z)
-    x = np.cross(z, up)
-    x = x / np.linalg.norm(x)
-    y = np.cross(z, x)
-    return make_transform(np.stack([x, y, z], axis=1), eye)
+def _is_int(value: Any) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
 
 
-def _as_size(image_size: Any, what: str) -> tuple[int, int] | None:
-    if image_size is None:
+def _as_size(image_size: Any, what: str, allow_none: bool = True) -> tuple[int, int] | None:
+    if image_size is None and allow_none:
         return None
-    try:
-        width, height = (int(v) for v in image_size)
-    except (TypeError, ValueError) as exc:
-        raise DonGymError(f"{what}={image_size!r}: expected (width, height) in pixels or None") from exc
+    expected = "(width, height) in pixels" + (" or None" if allow_none else "")
+    if isinstance(image_size, (str, bytes)) or not isinstance(image_size, (tuple, list, np.ndarray)):
+        raise DonGymError(f"{what}={image_size!r}: expected {expected}")
+    if len(image_size) != 2 or not all(_is_int(v) for v in image_size):
+        raise DonGymError(f"{what}={image_size!r}: expected {expected}, two integers")
+    width, height = (int(v) for v in image_size)
     if not (8 <= width <= 1280 and 8 <= height <= 960):
         raise DonGymError(f"{what}={image_size!r}: width and height must be 8..1280 and 8..960 pixels")
     return width, height
 
 
-class PickPlaceEnv(gym.Env):
-    """Panda pick-and-place of one part into a handover cradle (see the module docstring).
+def _check_choice(value: Any, what: str, choices: tuple[str, ...] | list[str]) -> None:
+    if not isinstance(value, str) or value not in choices:
+        raise DonGymError(f"{what}={value!r} is unknown; expected one of {list(choices)}")
 
-    Args:
-        object: built-in name ("toolcap", "shaft") or a mesh file path (required for DONPick-v0).
-        object_scale: factor from mesh-file units to metres (None: built-ins as they are, files
-            auto-detected, see :func:`don_gym.objects.load_object`).
-        control: "grasp" (one scripted grasp-and-place per episode) or "ee" (25 Hz Cartesian).
-        image_size: (width, height) of the wrist camera, D435 intrinsics scaled to it; None = no images.
-        observe_images: False drops ``rgb``/``depth`` from the observation (no rendering at all).
-        sensor: depth-sensor preset ("d435" default: the paper's wrist camera, including missing
-            depth on the steel part that makes self-supervised DONs struggle; "ideal" for exact depth).
-        renderer: "tiny" (TinyRenderer, default, identical pixels everywhere) or "egl".
-        reward_type: "sparse" (1.0 on grasp_and_place, else 0.0) or "dense".
-        render_mode: None or "rgb_array" (the fixed overview camera).
-        render_size: (width, height) of ``render()``.
-        max_steps: ee mode truncation (grasp mode episodes are one step).
+
+def _check_arguments(
+    object: Any,  # noqa: A002 - the env's kwarg name
+    object_scale: Any,
+    control: Any,
+    observe_images: Any,
+    reward_type: Any,
+    render_mode: Any,
+    max_steps: Any,
+) -> None:
+    """The env's arguments that are checked before anything is loaded (the sizes, sensor and renderer:
+    where they are used); each DonGymError names the argument and what it expects."""
+    if object is None:
+        raise DonGymError("object= is required: a built-in name ('toolcap', 'shaft') or a mesh file path")
+    if not isinstance(object, (str, Path)) or not str(object):
+        raise DonGymError(f"object={object!r}: expected a built-in name ('toolcap', 'shaft') or a mesh file path")
+    scale_ok = isinstance(object_scale, (int, float, np.integer, np.floating)) and not isinstance(object_scale, bool)
+    if object_scale is not None and not (scale_ok and np.isfinite(object_scale) and object_scale > 0):
+        raise DonGymError(f"object_scale={object_scale!r}: expected a positive, finite factor (mesh units to metres)")
+    _check_choice(control, "control", CONTROL_MODES)
+    _check_choice(reward_type, "reward_type", REWARD_TYPES)
+    if render_mode is not None and not (isinstance(render_mode, str) and render_mode == "rgb_array"):
+        raise DonGymError(f"render_mode={render_mode!r} is unsupported; expected None or 'rgb_array'")
+    if not isinstance(observe_images, (bool, np.bool_)):
+        raise DonGymError(f"observe_images={observe_images!r}: expected True or False")
+    if not _is_int(max_steps) or max_steps < 1:
+        raise DonGymError(f"max_steps={max_steps!r}: expected a positive integer number of steps")
+
+
+class PickPlaceEnv(gym.Env):
+    """Panda pick-and-place of one part into a handover cradle, seen through a wrist RGB-D camera.
+
+    ## Description
+    The part lies on its side on the table; the robot must grasp it and place it into the cradle
+    with the part's +axis along the cradle's target direction (:class:`~don_gym.sim.task.PickPlaceTask`).
+    Physics: 4 ms steps, 150 solver iterations, the part's collision shape made of convex pieces
+    (:mod:`~don_gym.sim.part`), mass and inertia from its density, gear-coupled fingers with friction
+    1.8 and 40 N each; nothing is attached to the hand, friction holds the part. The robot is hidden
+    while the wrist camera renders (it never sees it); ``render()`` shows everything.
+
+    ## Action Space
+    - ``control="grasp"`` (the paper's experiment, one step per episode): ``Box(4)``, the agent's
+      belief ``[x, y, z, yaw]``: grasp point in the world (m, within 0.15 m of the workspace, up to
+      0.25 m above the table) and world yaw (rad) of the part's +axis. A scripted robot program
+      (:class:`~don_gym.sim.script.GraspPlaceScript`) grasps there across the axis, carries the part
+      to the cradle and places it with the believed +axis along the target direction.
+    - ``control="ee"`` (for RL, 25 Hz): ``Box(-1, 1, (5,))`` = (dx, dy, dz, dyaw, gripper), scaled by
+      5 cm, 0.25 rad and 2 cm of finger opening per step (:meth:`~don_gym.sim.robot.Panda.apply_ee_action`);
+      the hand stays top-down.
+
+    ## Observation Space
+    A flat ``Dict`` (SB3-compatible): ``rgb`` (H, W, 3) uint8 and ``depth`` (H, W) float32 metres
+    (0 = no return) from the wrist camera through the depth-sensor model; ``camera_intrinsics`` (6,)
+    ``[fx, fy, cx, cy, W, H]``; ``camera_pose`` (4, 4) the *reported* ``T_world_camera`` (true pose
+    times the episode's hand-eye calibration error); ``joint_positions`` (9,); ``ee_pose`` (7,) TCP
+    position + quaternion (x, y, z, w); ``gripper_width`` (1,). Without images (``observe_images=False``
+    or ``image_size=None``) ``rgb`` and ``depth`` are absent and nothing is rendered. The true part and
+    camera poses are only in ``info``.
+
+    ## Rewards
+    ``reward_type="sparse"``: 1.0 on ``grasp_and_place``, else 0.0. ``"dense"``: minus the TCP-to-part
+    distance (until lifted), the part-to-cradle distance and 0.1 x the axis error (rad), +1 on success
+    (:meth:`~don_gym.sim.task.PickPlaceTask.reward`).
+
+    ## Starting State
+    The part lies settled at a uniformly random position in the workspace with a uniformly random
+    yaw, or at one of 8 fixed poses with ``reset(options={"pose_id": k})``, k in 0..7. The wrist
+    camera looks straight down from 0.45 m above the workspace centre, the gripper open. The sensor's
+    hand-eye calibration error is drawn per episode.
+
+    ## Episode End
+    ``control="grasp"``: terminated after its one step. ``control="ee"``: terminated on success
+    (``grasp_and_place`` with the part at rest) or when the part leaves the table; truncated after
+    ``max_steps``.
+
+    ## Arguments
+    - ``object``: built-in name ("toolcap", "shaft") or a mesh file path (required for DONPick-v0).
+    - ``object_scale``: factor from mesh-file units to metres (None: built-ins as they are, files
+      auto-detected, see :func:`don_gym.objects.load_object`).
+    - ``control``: "grasp" or "ee" (see Action Space).
+    - ``image_size``: (width, height) of the wrist camera, D435 intrinsics scaled to it; None = no images.
+    - ``observe_images``: False drops ``rgb``/``depth`` from the observation.
+    - ``sensor``: depth-sensor preset (:mod:`~don_gym.sim.sensor`). "d435" (default): the paper's wrist
+      camera, whose missing depth on the steel part makes self-supervised DON training hard; "ideal":
+      exact depth and no calibration error.
+    - ``renderer``: "tiny" (TinyRenderer, default, identical pixels on every machine) or "egl" (falls
+      back to "tiny" with a warning).
+    - ``reward_type``: "sparse" or "dense" (see Rewards).
+    - ``render_mode``: None or "rgb_array" (a fixed overview camera); ``render_size``: its (width, height).
+    - ``max_steps``: ee-mode truncation.
+
+    ## Info
+    ``T_world_object``, ``T_world_camera`` (true), ``T_camera_reportedcamera`` (calibration error),
+    ``outcome`` (one of :data:`~don_gym.sim.task.OUTCOMES`), ``is_success``, ``pose_id``, ``sensor``,
+    ``renderer`` (the one that ran); after a step also ``lifted``, ``placement_distance_m``,
+    ``placement_axis_error_rad``, and in grasp mode ``sim_time_s``, ``grasp_width_m``,
+    ``release_width_m`` (None for a phase the script did not reach).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 25}
@@ -169,32 +189,24 @@ class PickPlaceEnv(gym.Env):
         max_steps: int = 100,
     ):
         super().__init__()
-        if object is None:
-            raise DonGymError("object= is required: a built-in name ('toolcap', 'shaft') or a mesh file path")
-        if control not in CONTROL_MODES:
-            raise DonGymError(f"control={control!r} is unknown; expected one of {list(CONTROL_MODES)}")
-        if reward_type not in REWARD_TYPES:
-            raise DonGymError(f"reward_type={reward_type!r} is unknown; expected one of {list(REWARD_TYPES)}")
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise DonGymError(f"render_mode={render_mode!r} is unsupported; expected None or 'rgb_array'")
-        if int(max_steps) < 1:
-            raise DonGymError(f"max_steps={max_steps!r}: expected a positive number of steps")
+        _check_arguments(object, object_scale, control, observe_images, reward_type, render_mode, max_steps)
+        image_size = _as_size(image_size, "image_size")
+        self.render_size = _as_size(render_size, "render_size", allow_none=False)
+        self.sensor = get_sensor(sensor)
         check_renderer(renderer)
         self.model: ObjectModel = load_object(object, scale=object_scale)
         self.control = control
         self.reward_type = reward_type
         self.render_mode = render_mode
         self.max_steps = int(max_steps)
-        self.image_size = _as_size(image_size, "image_size") if observe_images else None
-        self.render_size = _as_size(render_size, "render_size")
-        self.sensor = self._resolve_sensor(sensor)
+        self.image_size = image_size if observe_images else None
         self.intrinsics = CameraIntrinsics.d435(*(self.image_size or (640, 480)))
 
         self.sim = Bullet(time_step_s=TIME_STEP_S, solver_iterations=SOLVER_ITERATIONS, renderer=renderer)
         self.renderer = self.sim.renderer
         self.task = PickPlaceTask(self.sim, self.model)
         self.robot = Panda(self.sim)
-        self.observation_arm_rad = self._solve_observation_pose()
+        self.observation_arm_rad = self.robot.solve_top_down_camera(observation_camera_position(), OBSERVATION_YAW_RAD)
         self.robot.reset(self.observation_arm_rad)
         self.task.place_part(*FIXED_POSES[0])
         self.sim.take_snapshot()
@@ -207,39 +219,13 @@ class PickPlaceEnv(gym.Env):
         self._steps = 0
         self._lifted = False
         self._pose_id: int | None = None
-        self._ee_yaw = 0.0
+        #: ee mode: the hand yaw commanded last step (rad).
+        self._ee_yaw_rad = 0.0
 
     # --------------------------------------------------------------- set-up
-    @staticmethod
-    def _resolve_sensor(sensor: Any):
-        if _sensor is None:
-            if sensor != "ideal":
-                warnings.warn(
-                    f"sensor={sensor!r} requested but don_gym.sim.sensor is unavailable; using ideal depth",
-                    stacklevel=3,
-                )
-            return None
-        return _sensor.get_sensor(sensor)
-
     @property
     def sensor_name(self) -> str:
-        return "ideal" if self.sensor is None else self.sensor.name
-
-    def _solve_observation_pose(self) -> np.ndarray:
-        """Arm angles that put the wrist camera OBSERVATION_CAMERA_HEIGHT_M above the workspace centre."""
-        centre = np.array([(WORKSPACE_M[0] + WORKSPACE_M[1]) / 2, (WORKSPACE_M[2] + WORKSPACE_M[3]) / 2])
-        yaw = OBSERVATION_YAW_RAD
-        R_world_hand = Rotation.from_quat(top_down_quaternion(yaw)).as_matrix()
-        camera_offset_world = R_world_hand @ T_HAND_CAMERA[:3, 3]
-        tcp_offset_world = R_world_hand @ np.array([0.0, 0.0, TCP_OFFSET_M])
-        camera = np.array([centre[0], centre[1], TABLE_TOP_Z_M + OBSERVATION_CAMERA_HEIGHT_M])
-        tcp = camera - camera_offset_world + tcp_offset_world
-        wrist = wrist_angle_estimate(tcp, yaw)
-        arm = self.robot.inverse_kinematics(tcp, yaw, wrist_rad=wrist)
-        for _ in range(4):  # IK from the solution again: converge to sub-millimetre
-            self.robot.reset(arm)
-            arm = self.robot.inverse_kinematics(tcp, yaw, wrist_rad=wrist)
-        return arm
+        return self.sensor.name
 
     def _make_action_space(self) -> spaces.Box:
         if self.control == "grasp":
@@ -255,7 +241,7 @@ class PickPlaceEnv(gym.Env):
         if self.image_size is not None:
             width, height = self.image_size
             entries["rgb"] = spaces.Box(0, 255, shape=(height, width, 3), dtype=np.uint8)
-            entries["depth"] = spaces.Box(0.0, MAX_DEPTH_M, shape=(height, width), dtype=np.float32)
+            entries["depth"] = spaces.Box(0.0, DEPTH_OBS_MAX_M, shape=(height, width), dtype=np.float32)
         big = 1e4
         entries["camera_intrinsics"] = spaces.Box(0.0, big, shape=(6,), dtype=np.float32)
         entries["camera_pose"] = spaces.Box(-10.0, 10.0, shape=(4, 4), dtype=np.float32)
@@ -274,11 +260,9 @@ class PickPlaceEnv(gym.Env):
             rgb, depth_ideal, segmentation = render_camera(
                 self.sim.client, self.intrinsics, T_world_camera, NEAR_M, FAR_M, self.renderer
             )
-        if self.sensor is None:
-            return rgb, depth_ideal
         specular = specular_map(segmentation, {self.task.part.body_id: self.model.material.specular})
-        depth = _sensor.simulate_depth(depth_ideal, specular, self.intrinsics, self.sensor, self.np_random)
-        return rgb, np.clip(depth, 0.0, MAX_DEPTH_M).astype(np.float32)
+        depth = simulate_depth(depth_ideal, specular, self.intrinsics, self.sensor, self.np_random)
+        return rgb, np.clip(depth, 0.0, DEPTH_OBS_MAX_M).astype(np.float32)
 
     def _observation(self) -> dict[str, np.ndarray]:
         T_world_camera = self.robot.camera_pose()
@@ -306,12 +290,19 @@ class PickPlaceEnv(gym.Env):
 
     # ----------------------------------------------------------------- reset
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
-        super().reset(seed=seed)
+        if seed is not None and (not _is_int(seed) or seed < 0):
+            raise DonGymError(f"seed={seed!r}: expected a non-negative integer or None")
+        if options is not None and not isinstance(options, Mapping):
+            raise DonGymError(f"options={options!r}: expected a dict such as {{'pose_id': 3}} or None")
         options = options or {}
+        unknown = sorted(str(k) for k in options if k not in RESET_OPTIONS)
+        if unknown:
+            raise DonGymError(f"options {unknown}: unknown; reset() takes {list(RESET_OPTIONS)}")
         pose_id = options.get("pose_id")
+        if pose_id is not None and (not _is_int(pose_id) or not 0 <= pose_id < len(FIXED_POSES)):
+            raise DonGymError(f"options['pose_id']={pose_id!r}: expected an integer 0..{len(FIXED_POSES) - 1}")
+        super().reset(seed=None if seed is None else int(seed))  # only once everything is checked
         if pose_id is not None:
-            if isinstance(pose_id, bool) or not isinstance(pose_id, (int, np.integer)) or not 0 <= pose_id < 8:
-                raise DonGymError(f"options['pose_id']={pose_id!r}: expected an integer 0..7")
             x, y, yaw = FIXED_POSES[int(pose_id)]
             self._pose_id = int(pose_id)
         else:
@@ -327,19 +318,23 @@ class PickPlaceEnv(gym.Env):
         self.robot.reset(self.observation_arm_rad)
         self.task.place_part(x, y, yaw)
         self.task.settle()
-        if self.sensor is not None:
-            self._T_camera_reportedcamera = _sensor.sample_calibration_error(self.sensor, self.np_random)
+        self._T_camera_reportedcamera = sample_calibration_error(self.sensor, self.np_random)
         self._episode_over = False
         self._steps = 0
         self._lifted = False
-        self._ee_yaw = float(OBSERVATION_YAW_RAD)
+        self._ee_yaw_rad = float(OBSERVATION_YAW_RAD)
         return self._observation(), self._info() | {"outcome": "fail", "is_success": False}
 
     # ------------------------------------------------------------------ step
     def step(self, action):
         if self._episode_over:
             raise DonGymError("step() after the episode ended (or before reset()); call reset() first")
-        action = np.asarray(action, dtype=np.float64).reshape(-1)
+        try:
+            action = np.asarray(action, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            raise DonGymError(
+                f"action {action!r}: expected {self.action_space.shape[0]} numbers (see the action space)"
+            ) from None
         if action.shape != self.action_space.shape:
             raise DonGymError(f"action has shape {action.shape}, expected {self.action_space.shape}")
         if not np.all(np.isfinite(action)):
@@ -349,80 +344,43 @@ class PickPlaceEnv(gym.Env):
             return self._step_grasp(action)
         return self._step_ee(action)
 
-    def _outcome(self, lifted: bool, left: bool, contacts: PartContacts) -> tuple[str, Placement]:
-        placement = self.task.placement(contacts)
-        if left or not lifted:
-            return "fail", placement
-        if placement.correct and not any(contacts.fingers):
-            return "grasp_and_place", placement
-        return "grasp_only", placement
-
-    def _reward(self, outcome: str, placement) -> float:
-        if self.reward_type == "sparse":
-            return float(outcome == "grasp_and_place")
-        # Dense: distance of the TCP to the part (until lifted), of the part to the cradle, and
-        # the axis error in radians scaled to "1 rad ~ 10 cm"; +1 on success.
-        com = self.task.part.center_of_mass_world
-        reach = 0.0 if self._lifted else float(np.linalg.norm(self.robot.tcp_pose()[:3, 3] - com))
-        place = float(np.linalg.norm(com - self.task.cradle_rest_center()))
-        return float(-(reach + place + 0.1 * placement.axis_error_rad) + (outcome == "grasp_and_place"))
-
-    def _step_info(self, outcome: str, placement) -> dict[str, Any]:
-        return self._info() | {
-            "outcome": outcome,
-            "is_success": outcome == "grasp_and_place",
-            "lifted": self._lifted,
-            "placement_distance_m": placement.distance_xy_m,
-            "placement_axis_error_rad": placement.axis_error_rad,
-        }
+    def _reward(self, judgement: Judgement) -> float:
+        return self.task.reward(judgement, self.reward_type, self.robot.tcp_pose()[:3, 3])
 
     def _step_grasp(self, action: np.ndarray):
         script = GraspPlaceScript(self.sim, self.robot, self.task)
         trace = script.run(action[:3], float(action[3]))
         self._lifted = trace.lifted
-        outcome, placement = self._outcome(trace.lifted, trace.left_workspace, self.robot.contacts(self.task))
+        judgement = self.task.judge(trace.lifted, trace.left_workspace, self.robot.contacts(self.task))
         self._episode_over = True
-        info = self._step_info(outcome, placement)
+        info = self._info() | judgement.info()
         # None (not NaN, which never equals itself) for a phase the script did not reach.
         info |= {
             "sim_time_s": trace.sim_time_s,
             "grasp_width_m": None if np.isnan(trace.grasp_width_m) else trace.grasp_width_m,
             "release_width_m": None if np.isnan(trace.release_width_m) else trace.release_width_m,
         }
-        return self._observation(), self._reward(outcome, placement), True, False, info
+        return self._observation(), self._reward(judgement), True, False, info
 
     def _step_ee(self, action: np.ndarray):
-        robot = self.robot
-        tcp, _ = robot.tcp_position_quaternion()
-        x0, x1, y0, y1, z0, z1 = EE_BOUNDS_M
-        target = np.clip(tcp + EE_STEP_M * action[:3], [x0, y0, z0], [x1, y1, z1])
-        # Hand yaw as joint 7 sees it (see robot.wrist_angle_estimate), kept inside its range.
-        q1 = float(np.arctan2(target[1] - robot.base_position[1], target[0] - robot.base_position[0]))
-        wanted_yaw = self._ee_yaw + EE_YAW_STEP_RAD * action[3]
-        wrist = float(np.clip(q1 - wanted_yaw + np.pi / 4, -EE_WRIST_MAX_RAD, EE_WRIST_MAX_RAD))
-        self._ee_yaw = q1 + np.pi / 4 - wrist
-        # 20 IK iterations (~2 mm left of a 5 cm move): the next step re-solves from the measured pose.
-        robot.command_arm(robot.inverse_kinematics(target, self._ee_yaw, wrist_rad=wrist, iterations=20))
-        robot.command_gripper(robot.width_target_m + EE_GRIPPER_STEP_M * action[4])
+        self._ee_yaw_rad = self.robot.apply_ee_action(action, self._ee_yaw_rad)
         self.sim.step(CONTROL_STEPS)
         self._steps += 1
 
-        contacts = robot.contacts(self.task)
+        contacts = self.robot.contacts(self.task)
         self._lifted = self._lifted or self.task.is_held(contacts)
         left = self.task.left_workspace()
-        outcome, placement = self._outcome(self._lifted, left, contacts)
-        success = outcome == "grasp_and_place" and self.task.is_at_rest()
-        if outcome == "grasp_and_place" and not success:
-            outcome = "grasp_only"
-        terminated = success or left
+        # Success ends the episode, so it needs the part to be at rest, not merely passing through the cradle.
+        judgement = self.task.judge(self._lifted, left, contacts, require_rest=True)
+        terminated = judgement.is_success or left
         truncated = (not terminated) and self._steps >= self.max_steps
         self._episode_over = terminated or truncated
         return (
             self._observation(),
-            self._reward(outcome, placement),
+            self._reward(judgement),
             bool(terminated),
             bool(truncated),
-            self._step_info(outcome, placement),
+            self._info() | judgement.info(),
         )
 
     # ------------------------------------------------------------- render
@@ -434,7 +392,7 @@ class PickPlaceEnv(gym.Env):
             rgb, _, _ = render_camera(
                 self.sim.client,
                 CameraIntrinsics.d435(width, height),
-                _look_at(OVERVIEW_EYE_M, OVERVIEW_TARGET_M),
+                look_at_camera_pose(OVERVIEW_EYE_M, OVERVIEW_TARGET_M),
                 0.05,
                 5.0,
                 self.renderer,

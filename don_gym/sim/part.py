@@ -1,26 +1,7 @@
-"""A rigid part in PyBullet from an :class:`~don_gym.objects.ObjectModel`.
+"""A rigid part in PyBullet from an :class:`~don_gym.objects.ObjectModel` (:class:`PartBody`).
 
-Collision shape: a compound of convex pieces, so that steps and flanges collide like the
-real part (one convex hull would turn the toolcap into a cone and the shaft into a
-cylinder). Two ways, chosen by the model:
-
-- parts with a declared symmetry axis (the built-ins): *axial slabs*. The outer radius
-  profile along the axis (from exact cross-sections on both sides of every vertex level,
-  so flange steps stay steps) is simplified (Douglas-Peucker, 0.1 mm) and cut wherever it
-  turns convex; each piece in between is a convex solid of revolution (32-gon rings on
-  its profile points). The toolcap becomes two pieces (chamfered body, flange), the shaft
-  four, each as exact as the profile; few pieces with few vertices keep contacts cheap.
-  Bores are filled: nothing in this task reaches into them.
-- any other mesh: V-HACD (``p.vhacd``), which takes seconds.
-
-Both are written to an OBJ file (one ``o`` group per piece, which PyBullet loads as a
-compound shape) cached under :func:`cache_dir`, keyed by the mesh hash and the method's
-parameters. Mass and inertia come from the model (density x mesh volume), not from
-PyBullet's bounding-box guess for compound shapes.
-
-Frames: the PyBullet base frame of the body is the part's *inertial* frame (centre of
-mass, principal axes), as PyBullet reports it; :class:`PartBody` converts to and from the
-*object frame* of the :class:`ObjectModel` (``T_world_object``) everywhere.
+Its collision shape is a compound of convex pieces (:func:`collision_method`), cached as an OBJ
+file under :func:`cache_dir`; mass and inertia come from the model.
 """
 
 from __future__ import annotations
@@ -132,7 +113,9 @@ def axial_slabs(mesh: trimesh.Trimesh, axis: np.ndarray, sections: int = COLLISI
     The outer radius profile is simplified to :data:`SLAB_TOLERANCE_M` and cut where it turns
     convex (a step up or down onto a thinner section, a waist): between cuts it is concave, so
     the solid of revolution is convex and one piece represents it exactly. Each piece is returned
-    as (N, 3) vertices (``sections``-gons on the profile points), object frame.
+    as (N, 3) vertices (``sections``-gons on the profile points), object frame. The toolcap
+    becomes two pieces (chamfered body, flange), the shaft four; bores are filled, as nothing in
+    this task reaches into them.
     """
     axis = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
     profile = radius_profile(mesh, axis)
@@ -178,7 +161,13 @@ def _write_pieces_obj(path: Path, pieces: list[np.ndarray]) -> None:
 
 
 def collision_method(model: ObjectModel) -> str:
-    """ "slabs" for parts with a declared symmetry axis, "vhacd" otherwise."""
+    """ "slabs" for parts with a declared symmetry axis, "vhacd" otherwise.
+
+    Convex pieces make steps and flanges collide like the real part (one convex hull would turn
+    the toolcap into a cone and the shaft into a cylinder). "slabs": :func:`axial_slabs`, few
+    pieces with few vertices, each exact to the radius profile. "vhacd": PyBullet's V-HACD
+    (``p.vhacd``) with :data:`VHACD_PARAMS`, for any other mesh.
+    """
     return "slabs" if model.symmetry_axis is not None else "vhacd"
 
 
@@ -186,7 +175,8 @@ def mesh_files(model: ObjectModel, directory: Path | None = None) -> tuple[Path,
     """``(visual_obj, collision_obj)`` for ``model``, created on first use and cached.
 
     The visual OBJ is the model mesh in the object frame; the collision OBJ holds the convex
-    pieces (one ``o`` group each), which PyBullet loads as a compound shape.
+    pieces (one ``o`` group each), which PyBullet loads as a compound shape. Files are keyed by
+    the mesh hash and the collision method's parameters.
     """
     directory = cache_dir() if directory is None else Path(directory)
     key = model.mesh_hash or hashlib.sha256(np.ascontiguousarray(model.mesh.vertices).tobytes()).hexdigest()[:16]
@@ -231,7 +221,13 @@ def principal_frame(model: ObjectModel) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass
 class PartBody:
-    """The simulated part: its PyBullet id and the object <-> inertial frame offset."""
+    """The simulated part: its PyBullet id and the object <-> inertial frame offset.
+
+    The PyBullet base frame of the body is the part's *inertial* frame (centre of mass, principal
+    axes, :func:`principal_frame`), as PyBullet reports it; every method takes and returns the
+    *object frame* of the :class:`ObjectModel` (``T_world_object``). Mass and inertia come from the
+    model (density x mesh volume), not from PyBullet's bounding-box guess for compound shapes.
+    """
 
     sim: Bullet
     model: ObjectModel

@@ -1,20 +1,6 @@
-"""Scene recorder: the paper's static-scene recordings with a wrist camera, in simulation.
-
-The object is put at a pose (from a seed, or given) on the table, then the Panda moves the
-wrist camera through a quasi-random (Halton) set of reachable poses around the workspace:
-varied distance (0.25-0.55 m), elevation (40-88 degrees), azimuth (all around) and roll,
-looking at points up to 6 cm from the object, so it is seen from many sides and not always
-centred. Per frame the recorder keeps RGB, sensor depth (a preset of
-:mod:`don_gym.sim.sensor`), ideal depth, the object mask from the simulator's
-segmentation, the true camera pose and the reported one (with the preset's hand-eye
-calibration error, sampled once per scene as on a real robot), and the object pose.
-
-Background randomisation as in the paper: per scene the table top and the floor get a random
-procedural texture (smooth noise, stripes or checks in two random colours) and the fixture a
-random colour.
-
-The arm is placed at each pose by IK and joint reset; the scene is static, so no physics
-step runs while recording and the object never moves.
+"""Scene recorder (:class:`SceneRecorder`): the paper's static-scene recordings with a wrist
+camera, in simulation. Each scene is the object lying on the table, seen from many wrist-camera
+poses, with RGB, sensor and ideal depth, object mask and camera poses per frame.
 """
 
 from __future__ import annotations
@@ -31,10 +17,11 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import qmc
 
 from don_gym.errors import DonGymError
-from don_gym.geometry import CameraIntrinsics, invert_transform, make_transform, rotation_angle_rad
+from don_gym.geometry import CameraIntrinsics, invert_transform, rotation_angle_rad
+from don_gym.io import write_png
 from don_gym.objects import ObjectModel
 from don_gym.sim.bullet import Bullet
-from don_gym.sim.camera import body_mask, render_camera, specular_map
+from don_gym.sim.camera import body_mask, look_at_camera_pose, render_camera, specular_map
 from don_gym.sim.robot import ARM_HOME_RAD, ARM_JOINTS, ARM_LOWER_RAD, ARM_UPPER_RAD, HAND_LINK, T_HAND_CAMERA, Panda
 from don_gym.sim.sensor import get_sensor, sample_calibration_error, simulate_depth
 from don_gym.sim.task import TABLE_BOUNDS_M, TABLE_TOP_Z_M, PickPlaceTask
@@ -74,22 +61,6 @@ class RecordedScene:
     background: dict[str, Any] = field(default_factory=dict)
 
 
-def look_at_camera_pose(eye_world: np.ndarray, target_world: np.ndarray, roll_rad: float = 0.0) -> np.ndarray:
-    """(4, 4) OpenCV ``T_world_camera`` at ``eye_world`` looking at ``target_world``.
-
-    With zero roll the image's "up" (-y) points as close to world +z as possible; ``roll_rad``
-    rotates the camera about its optical axis.
-    """
-    z_axis = np.asarray(target_world, float) - np.asarray(eye_world, float)
-    z_axis /= np.linalg.norm(z_axis)
-    helper = np.array([0.0, 0.0, 1.0]) if abs(z_axis[2]) < 0.999 else np.array([1.0, 0.0, 0.0])
-    x_axis = np.cross(z_axis, helper)
-    x_axis /= np.linalg.norm(x_axis)
-    y_axis = np.cross(z_axis, x_axis)
-    R = np.stack([x_axis, y_axis, z_axis], axis=1) @ Rotation.from_euler("z", roll_rad).as_matrix()
-    return make_transform(R, eye_world)
-
-
 def random_table_texture(rng: np.random.Generator, size_px: int = 128) -> np.ndarray:
     """(size, size, 3) uint8 procedural texture: smooth noise, stripes or checks in two random colours."""
     colour_a, colour_b = rng.uniform(0, 255, size=(2, 3))
@@ -111,6 +82,17 @@ def random_table_texture(rng: np.random.Generator, size_px: int = 128) -> np.nda
 
 class SceneRecorder:
     """Records static scenes of one object; owns one PyBullet client (see :class:`Bullet`).
+
+    Per scene the object is put at a pose (from the seed, or given) on the table, then the Panda
+    moves the wrist camera through a quasi-random (Halton) set of reachable poses around it:
+    distance 0.25-0.55 m, elevation 40-88 degrees, any azimuth, roll, looking at points up to
+    6 cm from the object, so it is seen from many sides and not always centred. The arm is put
+    at each pose by IK and joint reset; no physics step runs while recording, so the object never
+    moves. Per frame it keeps RGB, sensor depth, ideal depth, the object mask from the
+    segmentation, the true camera pose and the reported one (the sensor's hand-eye calibration
+    error, drawn once per scene as on a real robot). As in the paper, the background is
+    randomised per scene: a procedural texture (smooth noise, stripes or checks in two random
+    colours) on the table top and the floor, and a random colour on the fixture.
 
     Args:
         model: the object.
@@ -170,7 +152,7 @@ class SceneRecorder:
             # PyBullet caches textures by file name: every texture needs a new one.
             self._texture_count += 1
             path = Path(self._texture_dir.name) / f"{name}_{self._texture_count}.png"
-            cv2.imwrite(str(path), cv2.cvtColor(texture, cv2.COLOR_RGB2BGR))
+            write_png(path, cv2.cvtColor(texture, cv2.COLOR_RGB2BGR))  # raises, not a silently missing texture
             client.changeVisualShape(body_id, -1, rgbaColor=[1, 1, 1, 1], textureUniqueId=client.loadTexture(str(path)))
             settings[f"{name}_texture_mean_rgb"] = texture.reshape(-1, 3).mean(axis=0).round(1)
         settings["cradle_rgba"] = [*rng.uniform(0.1, 0.9, size=3), 1.0]

@@ -1,21 +1,14 @@
-"""The Franka Panda arm with its parallel gripper and a wrist-mounted RGB-D camera.
+"""The Franka Panda with its parallel gripper and wrist RGB-D camera (:class:`Panda`).
 
-Model: ``pybullet_data/franka_panda/panda.urdf``. Joints 0-6 are the arm, 7 and 8 fixed,
-9 and 10 the prismatic fingers (0-0.04 m each), link 11 ``panda_grasptarget`` sits
-0.105 m in front of the hand, between the finger pads (the tool centre point, TCP).
-The URDF's ``<mimic>`` is ignored by PyBullet, so a gear constraint ties finger 10 to
-finger 9: the fingers stay centred like the real, mechanically coupled Panda gripper,
-and a part touched by one finger first is pushed to the middle instead of away.
-
-Top-down hand orientation with yaw ``psi``: hand z points down and the fingers close
-along hand y = (sin psi, -cos psi, 0); hand x = (cos psi, sin psi, 0).
+Besides joint-level control it maps the env's Cartesian ee actions to joint targets
+(:meth:`Panda.apply_ee_action`) and solves the top-down camera pose the env observes from
+(:meth:`Panda.solve_top_down_camera`).
 """
 
 from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator, Sequence
-from typing import TYPE_CHECKING
 
 import numpy as np
 import pybullet as p
@@ -23,9 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from don_gym.geometry import make_transform
 from don_gym.sim.bullet import Bullet, pose_matrix
-
-if TYPE_CHECKING:  # task imports the part, which imports nothing of the robot: no cycle at run time
-    from don_gym.sim.task import PartContacts, PickPlaceTask
+from don_gym.sim.task import TABLE_TOP_Z_M, PartContacts, PickPlaceTask
 
 ARM_JOINTS = (0, 1, 2, 3, 4, 5, 6)
 FINGER_JOINTS = (9, 10)
@@ -50,6 +41,19 @@ FINGER_LATERAL_FRICTION = 1.8
 FINGER_SPINNING_FRICTION = 0.05
 #: TCP offset from the hand frame along hand z (m), from the URDF.
 TCP_OFFSET_M = 0.105
+#: Lowest TCP height above the table: the fingertips (7 mm below the TCP) stay 3 mm clear.
+MIN_TCP_HEIGHT_M = 0.010
+
+#: ee control: an action (dx, dy, dz, dyaw, gripper) in [-1, 1] moves the TCP target by up to
+#: EE_STEP_M per axis, the hand yaw by EE_YAW_STEP_RAD and the finger opening by EE_GRIPPER_STEP_M.
+EE_STEP_M = 0.05
+EE_YAW_STEP_RAD = 0.25
+EE_GRIPPER_STEP_M = 0.02
+#: ee control keeps the TCP target in this box (x0, x1, y0, y1, z0, z1), metres; its floor keeps
+#: the fingertips 3 mm above the table.
+EE_BOUNDS_M = (0.20, 0.80, -0.35, 0.60, TABLE_TOP_Z_M + MIN_TCP_HEIGHT_M, TABLE_TOP_Z_M + 0.45)
+#: ee control keeps joint 7 this far inside its +-2.97 rad range.
+EE_WRIST_MAX_RAD = 2.85
 
 #: Wrist camera pose in the hand frame (OpenCV camera axes): 6.5 cm to the side of the
 #: gripper along hand -x, 1 cm above the hand flange plane, looking along hand z (down when the
@@ -62,9 +66,11 @@ T_HAND_CAMERA = make_transform(
 
 
 def top_down_quaternion(yaw_rad: float) -> np.ndarray:
-    """(x, y, z, w) of the top-down hand orientation with yaw ``yaw_rad`` (see module docstring).
+    """(x, y, z, w) of the top-down hand orientation with yaw ``yaw_rad``.
 
-    Closed form of Rz(yaw) Rx(pi); called at every control tick, where scipy costs ~70 us.
+    Hand z points down, hand x = (cos yaw, sin yaw, 0) and the fingers close along hand
+    y = (sin yaw, -cos yaw, 0). Closed form of Rz(yaw) Rx(pi) rather than scipy: it is called
+    at every control tick.
     """
     return np.array([np.cos(0.5 * yaw_rad), np.sin(0.5 * yaw_rad), 0.0, 0.0])
 
@@ -86,7 +92,15 @@ def wrist_angle_estimate(position: np.ndarray, yaw_rad: float) -> float:
 
 
 class Panda:
-    """Panda arm + gripper in a :class:`Bullet` world, base at ``base_position``."""
+    """Panda arm + gripper in a :class:`Bullet` world, base at ``base_position``.
+
+    Model: ``pybullet_data/franka_panda/panda.urdf``. Joints 0-6 are the arm, 7 and 8 fixed,
+    9 and 10 the prismatic fingers (0-0.04 m each); link 11 ``panda_grasptarget``, 0.105 m in
+    front of the hand between the finger pads, is the tool centre point (TCP). PyBullet ignores
+    the URDF's ``<mimic>``, so a gear constraint ties finger 10 to finger 9: the fingers stay
+    centred like the real, mechanically coupled gripper, and a part touched by one finger first
+    is pushed to the middle instead of away. The wrist camera is mounted at :data:`T_HAND_CAMERA`.
+    """
 
     def __init__(self, sim: Bullet, base_position: Sequence[float] = (0.0, 0.0, 0.0)):
         self.sim = sim
@@ -129,8 +143,8 @@ class Panda:
         """Make the robot invisible to cameras for the duration (alpha 0, which both renderers skip).
 
         The wrist camera looks down and away from the arm and 6.5 cm beside the fingers, so the
-        robot never appears in its images (a test checks this); skipping the arm's ~100k
-        visual triangles makes a 160x120 TinyRenderer image about four times cheaper.
+        robot never appears in its images (a test checks this) and the renderer can skip the
+        arm's ~100k visual triangles.
         """
         client = self.sim.client
         for link in self._visual_rgba:
@@ -248,3 +262,43 @@ class Panda:
                 force=force_n,
                 maxVelocity=FINGER_SPEED_M_S,
             )
+
+    def apply_ee_action(self, action: np.ndarray, yaw_rad: float) -> float:
+        """Command one step of Cartesian control; the hand stays top-down.
+
+        ``action`` (dx, dy, dz, dyaw, gripper) in [-1, 1] is scaled by :data:`EE_STEP_M`,
+        :data:`EE_YAW_STEP_RAD` and :data:`EE_GRIPPER_STEP_M`. The TCP target is the measured TCP
+        plus the step, kept in :data:`EE_BOUNDS_M`; the hand yaw is ``yaw_rad`` (the yaw commanded
+        last step) plus the step, limited so joint 7 stays within :data:`EE_WRIST_MAX_RAD`.
+        Returns the commanded hand yaw, the next step's ``yaw_rad``.
+        """
+        tcp, _ = self.tcp_position_quaternion()
+        x0, x1, y0, y1, z0, z1 = EE_BOUNDS_M
+        target = np.clip(tcp + EE_STEP_M * action[:3], [x0, y0, z0], [x1, y1, z1])
+        # Hand yaw as joint 7 sees it (see wrist_angle_estimate), kept inside its range.
+        q1 = float(np.arctan2(target[1] - self.base_position[1], target[0] - self.base_position[0]))
+        wanted_yaw = yaw_rad + EE_YAW_STEP_RAD * action[3]
+        wrist = float(np.clip(q1 - wanted_yaw + np.pi / 4, -EE_WRIST_MAX_RAD, EE_WRIST_MAX_RAD))
+        yaw_rad = q1 + np.pi / 4 - wrist
+        # 20 IK iterations (~2 mm left of a 5 cm move): the next step re-solves from the measured pose.
+        self.command_arm(self.inverse_kinematics(target, yaw_rad, wrist_rad=wrist, iterations=20))
+        self.command_gripper(self.width_target_m + EE_GRIPPER_STEP_M * action[4])
+        return yaw_rad
+
+    def solve_top_down_camera(self, camera_position: np.ndarray, yaw_rad: float) -> np.ndarray:
+        """(7,) arm angles that put the wrist camera at world ``camera_position`` (m), looking straight
+        down with hand yaw ``yaw_rad``.
+
+        Teleports the joints while it re-solves IK from its own solution (sub-millimetre result);
+        :meth:`reset` to the returned angles before using them.
+        """
+        R_world_hand = Rotation.from_quat(top_down_quaternion(yaw_rad)).as_matrix()
+        camera_offset_world = R_world_hand @ T_HAND_CAMERA[:3, 3]
+        tcp_offset_world = R_world_hand @ np.array([0.0, 0.0, TCP_OFFSET_M])
+        tcp = np.asarray(camera_position, dtype=np.float64) - camera_offset_world + tcp_offset_world
+        wrist = wrist_angle_estimate(tcp - self.base_position, yaw_rad)
+        arm = self.inverse_kinematics(tcp, yaw_rad, wrist_rad=wrist)
+        for _ in range(4):  # IK from the solution again: converge to sub-millimetre
+            self.reset(arm)
+            arm = self.inverse_kinematics(tcp, yaw_rad, wrist_rad=wrist)
+        return arm

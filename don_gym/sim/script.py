@@ -1,21 +1,7 @@
-"""The scripted grasp-and-place of ``control="grasp"``: a pre-programmed robot program.
+"""The scripted grasp-and-place of ``control="grasp"`` (:class:`GraspPlaceScript`).
 
-Given the agent's belief (grasp point and yaw of the part's +axis), the robot:
-
-1. moves above the grasp point with the fingers across the believed axis (top-down),
-2. descends, closes the gripper slowly with a limited force and waits for the fingers to stop,
-3. lifts slowly, carries the part above the cradle while turning the hand so that the
-   *believed* +axis ends along the cradle's target direction,
-4. lowers it with a guarded move (stops at the first contact of the part or a fingertip
-   with the cradle, as a force-guarded industrial place would), lifts 4 mm if a fingertip
-   rests on a groove wall, opens the gripper and retracts.
-
-Nothing is attached or constrained: the part is held by finger friction alone. A
-believed axis that is flipped (yaw + pi) therefore ends reversed in the cradle.
-
-Motion: Cartesian straight lines with a quintic (minimum-jerk) time scaling, IK at every
-control tick, joint position control with the arm's torque limits. The hand yaw is
-parametrised by the wrist angle (joint 7) so the arm never winds past its joint limits.
+A pre-programmed robot program that grasps the part where the agent believes its axis is and
+places it into the cradle; nothing is attached, friction alone holds the part.
 """
 
 from __future__ import annotations
@@ -26,21 +12,21 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from don_gym.sim.bullet import Bullet
-from don_gym.sim.robot import ARM_LOWER_RAD, ARM_UPPER_RAD, MAX_WIDTH_M, Panda, wrap_angle
+from don_gym.sim.robot import ARM_LOWER_RAD, ARM_UPPER_RAD, MAX_WIDTH_M, MIN_TCP_HEIGHT_M, Panda, wrap_angle
 from don_gym.sim.task import (
     CRADLE_APEX_HEIGHT_M,
     CRADLE_CENTER_XY_M,
     CRADLE_TARGET_YAW_RAD,
     TABLE_TOP_Z_M,
     PickPlaceTask,
+    grasp_axial_position_m,
+    yaw_direction,
 )
 
 #: Physics steps per control tick of the scripted motions (4 ms steps -> 50 Hz IK updates).
 TICK_STEPS = 5
 #: Joint 7 turns at most this fast (rad/s) so a carried part is not flung off by the rotation.
 WRIST_SPEED_RAD_S = 1.2
-#: Lowest TCP height above the table: the fingertips (7 mm below the TCP) stay 3 mm clear.
-MIN_TCP_HEIGHT_M = 0.010
 #: Heights above the table for approach, carrying and retreat.
 APPROACH_HEIGHT_M = 0.12
 CARRY_HEIGHT_M = 0.16
@@ -52,6 +38,10 @@ PLACE_SPEED_M_S = 0.05
 RETRACT_SPEED_M_S = 0.2
 #: Lift (m) before opening when the fingertips touch the cradle's walls.
 FINGER_CLEARANCE_M = 0.004
+#: The release counts as stalled when the fingers stop this far (m) short of fully open while still
+#: touching the part; the script then squeezes and opens again, at most RELEASE_RETRIES times.
+RELEASE_STALL_M = 0.005
+RELEASE_RETRIES = 2
 #: Margin (rad) kept from joint 7's limits when choosing wrist angles.
 WRIST_MARGIN_RAD = 0.08
 
@@ -69,12 +59,31 @@ class ScriptTrace:
     left_workspace: bool = False
     grasp_width_m: float = float("nan")
     release_width_m: float = float("nan")
+    release_retries: int = 0
     phases: list[str] = field(default_factory=list)
     sim_time_s: float = 0.0
 
 
 class GraspPlaceScript:
-    """Runs one grasp-and-place; owns no state beyond one episode."""
+    """Runs one grasp-and-place; owns no state beyond one episode.
+
+    Given the agent's belief (grasp point and yaw of the part's +axis), the robot:
+
+    1. moves above the grasp point with the fingers across the believed axis (top-down),
+    2. descends, closes the gripper slowly with a limited force and waits for the fingers to stop,
+    3. lifts slowly, carries the part above the cradle while turning the hand so that the
+       *believed* +axis ends along the cradle's target direction, the hand offset along it by the
+       grasp point's known axial position so that the part's centre of mass comes over the groove's centre,
+    4. lowers it with a guarded move (stops at the first contact of the part or a fingertip
+       with the cradle, as a force-guarded industrial place would), lifts 4 mm if a fingertip
+       rests on a groove wall, opens the gripper (squeezing and opening again if the fingers
+       stalled on the part, as a program checks that a gripper move succeeded) and retracts.
+
+    The part is held by finger friction alone, so a believed axis that is flipped (yaw + pi)
+    ends reversed in the cradle. Motion: Cartesian straight lines with a quintic (minimum-jerk)
+    time scaling, IK at every control tick, joint position control with the arm's torque limits;
+    the hand yaw is parametrised by the wrist angle (joint 7) so the arm never winds past its limits.
+    """
 
     def __init__(self, sim: Bullet, robot: Panda, task: PickPlaceTask):
         self.sim = sim
@@ -84,6 +93,10 @@ class GraspPlaceScript:
         self.trace = ScriptTrace()
         self._tcp = robot.tcp_pose()[:3, 3].copy()
         self._wrist = float(robot.joint_positions()[6])
+        #: TCP xy at the place: the grasp point sits this far along the target direction from the part's
+        #: centre of mass, which is what must end over the groove's centre.
+        target_xy = yaw_direction(CRADLE_TARGET_YAW_RAD)[:2]
+        self.place_xy = CRADLE_CENTER_XY_M + grasp_axial_position_m(task.model) * target_xy
 
     # ------------------------------------------------------------- helpers
     def _yaw_for(self, position: np.ndarray, wrist_rad: float) -> float:
@@ -162,7 +175,7 @@ class GraspPlaceScript:
         grasp one first; in the rare case neither does, the place angle is clamped, which
         costs at most the 15 degrees the range lacks of a full turn (placement tolerance 20).
         """
-        place_xyz = np.array([*CRADLE_CENTER_XY_M, 0.0])
+        place_xyz = np.array([*self.place_xy, 0.0])
         turn = CRADLE_TARGET_YAW_RAD - axis_yaw_rad
         limit_lo, limit_hi = ARM_LOWER_RAD[6] + WRIST_MARGIN_RAD, ARM_UPPER_RAD[6] - WRIST_MARGIN_RAD
         best = None
@@ -209,14 +222,14 @@ class GraspPlaceScript:
             return trace
 
         trace.phases.append("carry")
-        above_cradle = np.array([*CRADLE_CENTER_XY_M, TABLE_TOP_Z_M + CARRY_HEIGHT_M])
+        above_cradle = np.array([*self.place_xy, TABLE_TOP_Z_M + CARRY_HEIGHT_M])
         self.move(above_cradle, wrist_place, FREE_SPEED_M_S)
         trace.phases.append("lower")
         # Quickly to where no part held at most 4 cm below the TCP can touch, then a slow
         # guarded move: stop at the first contact of the part or a finger with the cradle.
         apex_z = TABLE_TOP_Z_M + CRADLE_APEX_HEIGHT_M
-        self.move(np.array([*CRADLE_CENTER_XY_M, apex_z + 0.06]), wrist_place, APPROACH_SPEED_M_S, settle_s=0.0)
-        lowest = np.array([*CRADLE_CENTER_XY_M, apex_z + MIN_TCP_HEIGHT_M])
+        self.move(np.array([*self.place_xy, apex_z + 0.06]), wrist_place, APPROACH_SPEED_M_S, settle_s=0.0)
+        lowest = np.array([*self.place_xy, apex_z + MIN_TCP_HEIGHT_M])
 
         def touching_cradle() -> bool:
             if self.sim.contact_points(part_id, task.cradle_id):
@@ -231,6 +244,17 @@ class GraspPlaceScript:
             # drops the last few millimetres into the groove.
             self.move(self._tcp + np.array([0.0, 0.0, FINGER_CLEARANCE_M]), self._wrist, 0.02, settle_s=0.1)
         trace.release_width_m = self.gripper(MAX_WIDTH_M, max_time_s=1.0)
+        while (
+            trace.release_retries < RELEASE_RETRIES
+            and trace.release_width_m < MAX_WIDTH_M - RELEASE_STALL_M
+            and any(robot.contacts(task).fingers)
+        ):
+            # A part that crept a few degrees in yaw between the pads during the carry can wedge
+            # between opposite pad corners as they open (the simulated contacts then hold the
+            # fingers); squeezing it again lines it up with the pads.
+            trace.release_retries += 1
+            self.gripper(0.0)
+            trace.release_width_m = self.gripper(MAX_WIDTH_M, max_time_s=1.0)
         trace.phases.append("retract")
         self.move(self._tcp + np.array([0.0, 0.0, 0.10]), self._wrist, RETRACT_SPEED_M_S, settle_s=0.0)
         # Let the part come to rest (five calm ticks in a row, at most 2 s) before judging.

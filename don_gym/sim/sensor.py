@@ -1,40 +1,7 @@
-"""Depth-sensor models: what a real depth camera makes of the ideal rendered depth.
-
-The simulator renders exact z-depth. A real sensor (the D435 of the original DON
-set-up, or a Kinect) returns something worse, and the self-supervised baseline trains
-on that. :func:`simulate_depth` turns ideal depth into sensor depth with these effects,
-applied in this order (all vectorised, one pass over the image):
-
-1. **Flying pixels** at depth edges: a pixel whose 3x3 neighbourhood spans a depth jump
-   larger than ``flying_pixel_min_jump_m`` gets, with ``flying_pixel_probability``, a depth
-   drawn uniformly between the fore- and background depth (stereo matching windows that
-   straddle an edge mix both surfaces).
-2. **Axial noise** in disparity space for a stereo sensor: ``d = f * b / z``, ``d += N(0,
-   subpixel^2)``, back to depth. To first order this is ``sigma_z = z^2 * subpixel / (f * b)``
-   (NOTES.md section 5). The noise field is spatially correlated by a Gaussian blur of
-   width ``noise_correlation_px`` (stereo block matching correlates neighbours) and then
-   rescaled so the per-pixel std is unchanged. An optional depth-space term
-   ``sigma_z = c + q (z - z0)^2`` (+ an incidence term) models structured light (Kinect).
-3. **Disparity quantisation** to ``disparity_step_px`` sub-pixel steps, then back to depth:
-   depth takes discrete levels whose spacing grows like ``z^2``.
-4. **Range limits**: disparities above the matcher's search range ``max_disparity_px``
-   (too close) and depths outside ``[min_range_m, max_range_m]`` return 0.
-5. **Missing depth**: per pixel with probability ``base + specular * specular_dropout_max *
-   logistic((theta - mid) / width)``, where ``theta`` is the incidence angle between the
-   viewing ray and the surface normal estimated from the ideal depth by finite
-   differences; plus a random speckle of small holes.
-
-Focal length and resolution: the stereo terms use ``f = intrinsics.fx``, the focal length
-in pixels of the simulated depth camera *at the simulated resolution*. A lower
-resolution means fewer pixels per radian, so the same sub-pixel matching error is a larger
-angle and depth is noisier (and quantisation coarser): that is what a real stereo pair
-scaled down to that resolution does, so it is kept rather than hidden. At 640x480 with
-the D435 colour intrinsics (fx = 615 px) ``sigma_z(0.5 m) = 0.65 mm``; at 160x120 (fx =
-154 px) it is 2.6 mm. NOTES.md's "about 1 mm at 0.5 m" corresponds to f of about 400 px,
-the D435 depth imager's wider field of view at 640 px width.
-
-Determinism: every random draw comes from the ``rng`` passed in, in a fixed order, so the
-same seed gives bit-identical output.
+"""Depth-sensor models: what a real depth camera (D435, Kinect) makes of the ideal rendered depth
+(:func:`simulate_depth`), and the hand-eye calibration error of its reported pose
+(:func:`sample_calibration_error`). Presets: :data:`SENSOR_PRESETS`; the facts behind their
+numbers: ``docs/background.md``, section "Depth sensors".
 """
 
 from __future__ import annotations
@@ -58,11 +25,11 @@ class SensorModel:
 
     Attributes:
         name: preset name, shown in logs and results.
-        baseline_m: stereo baseline in metres. D435: 50 mm (NOTES.md section 5, Intel D400
-            datasheet). Kinect v1: 75 mm (projector-to-camera, Khoshelham & Elberink 2012).
+        baseline_m: stereo baseline in metres. D435: 50 mm (Intel D400 datasheet; docs/background.md, "Depth sensors").
+            Kinect v1: 75 mm (projector-to-camera, Khoshelham & Elberink 2012).
         stereo_subpixel_rms_px: RMS disparity error of the stereo matcher in pixels at the
-            simulated resolution; 0 disables. D435: 0.08 (NOTES.md section 5, Intel's
-            typical subpixel RMS of 0.05-0.1).
+            simulated resolution; 0 disables. D435: 0.08, within Intel's typical subpixel RMS
+            of 0.05-0.1 (docs/background.md, "Depth sensors").
         disparity_step_px: disparity quantisation step in pixels; 0 disables. D435: 1/32,
             the 5-bit sub-pixel resolution of the D4 vision processor's disparity output.
         max_disparity_px: disparity search range in pixels; nearer points (larger disparity)
@@ -75,21 +42,21 @@ class SensorModel:
             windows of a few pixels correlate neighbours); no datasheet figure.
         axial_sigma_const_m, axial_sigma_quadratic_per_m, axial_sigma_z0_m: depth-space
             axial noise ``sigma_z = const + quadratic * (z - z0)^2`` in metres, added to the
-            stereo term. Kinect: 0.0012, 0.0019, 0.4 (Nguyen et al. 2012, NOTES.md section 5).
+            stereo term. Kinect: 0.0012, 0.0019, 0.4 (Nguyen et al. 2012; docs/background.md, "Depth sensors").
         axial_sigma_angle_coeff_m: incidence term of Nguyen et al. 2012 added beyond 60
             degrees: ``coeff / sqrt(z) * theta^2 / (pi/2 - theta)^2`` (theta in radians, clipped
-            at 88 degrees); Kinect: 0.0001. It gives the "growing fast beyond 60 degrees" of
-            NOTES.md section 5.
+            at 88 degrees); Kinect: 0.0001. It gives the noise's fast growth beyond 60 degrees
+            (docs/background.md, "Depth sensors").
         flying_pixel_probability: probability that a pixel next to a depth jump becomes a
             flying pixel. D435: 0.5, a modelling choice (the D435 shows flying pixels at
-            depth edges, NOTES.md section 5; their rate depends on the scene).
+            depth edges, docs/background.md, "Depth sensors"; their rate depends on the scene).
         flying_pixel_min_jump_m: depth jump (metres) within a pixel's neighbourhood that
             counts as an edge. D435: 0.015 m, a modelling choice: above the slope-induced
             depth change between neighbours on ordinary surfaces at table-top range.
         flying_pixel_radius_px: neighbourhood radius in pixels (1 = 3x3).
         specular_dropout_max: missing-depth probability on a fully specular surface
             (``specular = 1``) at grazing incidence. D435: 1.0 (zero depth on specular metal,
-            NOTES.md section 5; the Material.specular of the object scales it).
+            docs/background.md, "Depth sensors"; the Material.specular of the object scales it).
         specular_dropout_mid_angle_rad, specular_dropout_width_rad: centre and scale of
             the logistic in incidence angle: 50 degrees and 6.8 degrees put the rise between
             about 30 degrees (5 %) and 70 degrees (95 %). Modelling choice: a specular surface
@@ -383,6 +350,36 @@ def simulate_depth(
     rng: np.random.Generator,
 ) -> np.ndarray:
     """What ``sensor`` returns for a scene whose exact z-depth is ``depth_ideal_m``.
+
+    Effects, applied in this order (all vectorised, one pass over the image):
+
+    1. **Flying pixels** at depth edges: a pixel whose 3x3 neighbourhood spans a depth jump
+       larger than ``flying_pixel_min_jump_m`` gets, with ``flying_pixel_probability``, a depth
+       drawn uniformly between the fore- and background depth (stereo matching windows that
+       straddle an edge mix both surfaces).
+    2. **Axial noise** in disparity space for a stereo sensor: ``d = f * b / z``, ``d += N(0,
+       subpixel^2)``, back to depth; to first order ``sigma_z = z^2 * subpixel / (f * b)``
+       (docs/background.md, "Depth sensors"). The noise field is spatially correlated by a Gaussian blur of width
+       ``noise_correlation_px`` (stereo block matching correlates neighbours) and rescaled so the
+       per-pixel std is unchanged. An optional depth-space term ``sigma_z = c + q (z - z0)^2``
+       (+ an incidence term) models structured light (Kinect).
+    3. **Disparity quantisation** to ``disparity_step_px`` sub-pixel steps, then back to depth:
+       depth takes discrete levels whose spacing grows like ``z^2``.
+    4. **Range limits**: disparities above the matcher's search range ``max_disparity_px``
+       (too close) and depths outside ``[min_range_m, max_range_m]`` return 0.
+    5. **Missing depth**: per pixel with probability ``base + specular * specular_dropout_max *
+       logistic((theta - mid) / width)``, ``theta`` the incidence angle between the viewing ray
+       and the surface normal estimated from the ideal depth by finite differences; plus a
+       random speckle of small holes.
+
+    The stereo terms use ``f = intrinsics.fx``, the focal length in pixels *at the simulated
+    resolution*: a lower resolution has fewer pixels per radian, so the same sub-pixel matching
+    error is a larger angle and depth is noisier and coarser, as for a real stereo pair scaled
+    down. With the D435 colour intrinsics ``sigma_z(0.5 m)`` is 0.65 mm at 640x480 (fx = 615 px)
+    and 2.6 mm at 160x120 (fx = 154 px); the D435's "about 1 mm at 0.5 m" corresponds to
+    f of about 400 px, its depth imager's wider field of view at 640 px width.
+
+    Every random draw comes from ``rng``, in a fixed order: the same seed gives bit-identical output.
 
     Args:
         depth_ideal_m: (H, W) z-depth in metres, 0 = no surface (no return).

@@ -1,27 +1,11 @@
-"""The pick-and-place task: table, part, handover cradle, part poses and outcome.
-
-World frame: z up, origin at the robot base on the table top (``TABLE_TOP_Z_M = 0``), x
-away from the robot. A human leaves the part lying on its side somewhere in the
-workspace in front of the robot; the robot must put it into the *handover cradle*, a
-90-degree V-groove to the robot's left, with the part's +axis along the cradle's target
-direction, because a second robot without vision takes it from there (paper,
-"Experiment setup").
-
-Outcome (paper's categories):
-
-- ``"fail"``: the part was never lifted (or it left the workspace).
-- ``"grasp_only"``: it was lifted, but then dropped, misplaced, or placed reversed
-  (+axis against the target direction, "upside down").
-- ``"grasp_and_place"``: it rests in the cradle (touches it, not the table), its centre of
-  mass within :data:`PLACE_TOLERANCE_M` (2 cm, horizontally) of the cradle centre and its +axis within
-  :data:`AXIS_TOLERANCE_RAD` (20 degrees) of the target direction, released by the gripper.
-  A toolcap seated correctly has its axis about 7 degrees from horizontal (the flange is
-  3 mm larger in radius than the body), which counts towards the 20 degrees.
+"""The pick-and-place task (:class:`PickPlaceTask`): table, part, handover cradle, part poses,
+observation viewpoint, and the judging of a step: outcome, success and reward.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -56,10 +40,23 @@ CRADLE_BASE_HALF_WIDTH_M = 0.025
 
 PLACE_TOLERANCE_M = 0.02
 AXIS_TOLERANCE_RAD = np.deg2rad(20.0)
+#: How far (m) :func:`grasp_point_object` keeps the finger pads from a step of the radius profile
+#: where the flat stretch allows: room for the perception's error along the axis (the oracle's grasp
+#: is up to ~6 mm off with the D435's calibration error and noise).
+GRASP_STEP_CLEARANCE_M = 0.010
 #: Height (m) of the centre of mass above its resting height that counts as "lifted".
 LIFT_HEIGHT_M = 0.03
 
+#: The paper's outcome categories, worst first (see :meth:`PickPlaceTask.judge`).
 OUTCOMES = ("fail", "grasp_only", "grasp_and_place")
+#: "sparse": 1.0 on success, else 0.0; "dense": see :meth:`PickPlaceTask.reward`.
+REWARD_TYPES = ("sparse", "dense")
+
+#: Observation pose: the wrist camera this high above the table over the workspace centre, looking
+#: down with hand yaw 0, which puts image x along world +y (the image's long side across the
+#: workspace's long side).
+OBSERVATION_CAMERA_HEIGHT_M = 0.45
+OBSERVATION_YAW_RAD = 0.0
 
 #: A freshly placed part settles on the table for at least / at most this long (s) at reset;
 #: it is calm once its speed stays below 5 mm/s and 0.1 rad/s for two checks 40 ms apart.
@@ -101,16 +98,58 @@ class Placement:
 
     @property
     def correct(self) -> bool:
-        return self.in_cradle and self.distance_xy_m <= PLACE_TOLERANCE_M and self.axis_error_rad <= AXIS_TOLERANCE_RAD
+        return self.in_cradle and bool(within_placement_tolerance(self.distance_xy_m, self.axis_error_rad))
 
 
-def grasp_point_object(model: ObjectModel, pad_half_width_m: float = 0.011) -> np.ndarray:
+def within_placement_tolerance(distance_m: np.ndarray | float, axis_error_rad: np.ndarray | float) -> np.ndarray:
+    """Elementwise: a part whose centre is ``distance_m`` from where it should be and whose +axis is
+    ``axis_error_rad`` off the target direction is placed well enough (:data:`PLACE_TOLERANCE_M`,
+    :data:`AXIS_TOLERANCE_RAD`); :attr:`Placement.correct` adds that it lies in the cradle."""
+    return (np.asarray(distance_m) <= PLACE_TOLERANCE_M) & (np.asarray(axis_error_rad) <= AXIS_TOLERANCE_RAD)
+
+
+@dataclass(frozen=True)
+class Judgement:
+    """The task's verdict on the current state: outcome (one of :data:`OUTCOMES`), whether the part
+    was lifted during the episode, and where it lies relative to the cradle."""
+
+    outcome: str
+    lifted: bool
+    placement: Placement
+
+    @property
+    def is_success(self) -> bool:
+        return self.outcome == "grasp_and_place"
+
+    def info(self) -> dict[str, Any]:
+        """The env's ``info`` entries after a step."""
+        return {
+            "outcome": self.outcome,
+            "is_success": self.is_success,
+            "lifted": self.lifted,
+            "placement_distance_m": self.placement.distance_xy_m,
+            "placement_axis_error_rad": self.placement.axis_error_rad,
+        }
+
+
+def observation_camera_position() -> np.ndarray:
+    """(3,) world position (m) of the wrist camera in the observation pose."""
+    centre = np.array([(WORKSPACE_M[0] + WORKSPACE_M[1]) / 2, (WORKSPACE_M[2] + WORKSPACE_M[3]) / 2])
+    return np.array([centre[0], centre[1], TABLE_TOP_Z_M + OBSERVATION_CAMERA_HEIGHT_M])
+
+
+def grasp_point_object(
+    model: ObjectModel, pad_half_width_m: float = 0.011, step_clearance_m: float = GRASP_STEP_CLEARANCE_M
+) -> np.ndarray:
     """(3,) object-frame point on the +axis where a top-down grasp across the axis holds best.
 
     The paper's axis grasp takes the midpoint of two tracked points; here the midpoint of the
-    axis end points. For a part with a declared symmetry axis the point moves, if needed, to
-    the nearest place where the radius is constant under the whole finger pad (``+-pad_half_width_m``),
-    so the pads do not sit on a step (the shaft's midpoint is the collar's edge).
+    axis end points. For a part with a declared symmetry axis the point moves, if needed, onto
+    the nearest stretch where the radius is constant under the whole finger pad (``+-pad_half_width_m``),
+    and there as far as the stretch allows (up to ``step_clearance_m``) from its steps, so that a
+    grasp a few millimetres off along the axis still does not put a pad on a step (the shaft's
+    midpoint is the collar's edge: a pad corner on that edge hooks the part, which then follows
+    one finger when the gripper opens).
     """
     midpoint = np.mean(model.axis_endpoints(), axis=0)
     if model.symmetry_axis is None:
@@ -134,18 +173,49 @@ def grasp_point_object(model: ObjectModel, pad_half_width_m: float = 0.011) -> n
             continue
         candidate = float(np.clip(target, t0 + pad_half_width_m, t1 - pad_half_width_m))
         if abs(candidate - target) < best_distance:
-            best, best_distance = candidate, abs(candidate - target)
+            best, best_distance = (t0, t1), abs(candidate - target)
     if best is None:
         return midpoint
-    return com + best * axis
+    t0, t1 = best
+    margin = pad_half_width_m + min(step_clearance_m, (t1 - t0) / 2 - pad_half_width_m)
+    return com + float(np.clip(target, t0 + margin, t1 - margin)) * axis
+
+
+def grasp_axial_position_m(model: ObjectModel) -> float:
+    """Axial position (m from the centre of mass along +axis) of :func:`grasp_point_object`."""
+    axis = np.asarray(model.plus_axis, dtype=np.float64)
+    return float((grasp_point_object(model) - model.center_of_mass) @ axis)
 
 
 def yaw_direction(yaw_rad: float) -> np.ndarray:
     return np.array([np.cos(yaw_rad), np.sin(yaw_rad), 0.0])
 
 
+def cradle_rest_center(model: ObjectModel) -> np.ndarray:
+    """(3,) world point above the groove centre at the part's typical resting height (for rewards and goals)."""
+    radius = 0.5 * float(np.sort(model.extents_m)[:2].mean())
+    return np.array(
+        [*CRADLE_CENTER_XY_M, TABLE_TOP_Z_M + CRADLE_APEX_HEIGHT_M + radius * np.sqrt(2.0)], dtype=np.float64
+    )
+
+
+def seated_pose(model: ObjectModel) -> np.ndarray:
+    """T_world_object (4, 4) of the part seated in the cradle as a correct placement leaves it, to
+    within the placement tolerances: lying on its side, +axis along the target direction, centre
+    of mass at :func:`cradle_rest_center` (a goal for goal-conditioned agents)."""
+    R = lying_rotation(model, CRADLE_TARGET_YAW_RAD)
+    return make_transform(R, cradle_rest_center(model) - R @ model.center_of_mass)
+
+
 class PickPlaceTask:
-    """Builds the static scene and the part; samples part poses; judges the outcome."""
+    """Builds the static scene and the part; samples part poses; judges outcome and reward.
+
+    World frame: z up, origin at the robot base on the table top (:data:`TABLE_TOP_Z_M` = 0), x
+    away from the robot. A human leaves the part lying on its side somewhere in the workspace in
+    front of the robot; the robot must put it into the *handover cradle*, a 90-degree V-groove to
+    the robot's left, with the part's +axis along the cradle's target direction, because a second
+    robot without vision takes it from there (paper, "Experiment setup").
+    """
 
     def __init__(self, sim: Bullet, model: ObjectModel):
         self.sim = sim
@@ -222,10 +292,7 @@ class PickPlaceTask:
     # -------------------------------------------------------------- judging
     def cradle_rest_center(self) -> np.ndarray:
         """(3,) world point above the groove centre at the part's typical resting height (for rewards)."""
-        radius = 0.5 * float(np.sort(self.model.extents_m)[:2].mean())
-        return np.array(
-            [*CRADLE_CENTER_XY_M, TABLE_TOP_Z_M + CRADLE_APEX_HEIGHT_M + radius * np.sqrt(2.0)], dtype=np.float64
-        )
+        return cradle_rest_center(self.model)
 
     def contacts(self, robot_id: int, finger_links: tuple[int, int]) -> PartContacts:
         part_id = self.part.body_id
@@ -261,3 +328,42 @@ class PickPlaceTask:
     def is_at_rest(self) -> bool:
         linear, angular = self.part.velocity
         return float(np.linalg.norm(linear)) < 0.02 and float(np.linalg.norm(angular)) < 0.5
+
+    def judge(
+        self, lifted: bool, left_workspace: bool, contacts: PartContacts, require_rest: bool = False
+    ) -> Judgement:
+        """The paper's outcome now, given whether the part was lifted this episode and has left the table.
+
+        - ``"fail"``: the part was never lifted (or it left the workspace).
+        - ``"grasp_only"``: it was lifted, but then dropped, misplaced, or placed reversed
+          (+axis against the target direction, "upside down").
+        - ``"grasp_and_place"``: it lies in the cradle (touches it, not the table), its centre of
+          mass within :data:`PLACE_TOLERANCE_M` (horizontally) of the cradle centre and its +axis
+          within :data:`AXIS_TOLERANCE_RAD` of the target direction, released by the gripper; with
+          ``require_rest`` also at rest. A toolcap seated correctly has its axis about 7 degrees from
+          horizontal (the flange is 3 mm larger in radius than the body), which counts towards the
+          tolerance.
+        """
+        placement = self.placement(contacts)
+        if left_workspace or not lifted:
+            outcome = "fail"
+        elif placement.correct and not any(contacts.fingers):
+            outcome = "grasp_and_place"
+        else:
+            outcome = "grasp_only"
+        if outcome == "grasp_and_place" and require_rest and not self.is_at_rest():
+            outcome = "grasp_only"
+        return Judgement(outcome, bool(lifted), placement)
+
+    def reward(self, judgement: Judgement, reward_type: str, tcp_position_m: np.ndarray) -> float:
+        """Reward of a step (``reward_type`` one of :data:`REWARD_TYPES`).
+
+        Dense: minus the distance of the TCP to the part's centre of mass (until lifted), of the
+        part to :meth:`cradle_rest_center`, and the axis error scaled to "1 rad ~ 10 cm"; +1 on success.
+        """
+        if reward_type == "sparse":
+            return float(judgement.is_success)
+        com = self.part.center_of_mass_world
+        reach = 0.0 if judgement.lifted else float(np.linalg.norm(tcp_position_m - com))
+        place = float(np.linalg.norm(com - self.cradle_rest_center()))
+        return float(-(reach + place + 0.1 * judgement.placement.axis_error_rad) + judgement.is_success)

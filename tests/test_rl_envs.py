@@ -1,0 +1,291 @@
+"""RL env pieces: batched DON inference over a vector env, the model of the DON (SimulatedKeypoints), goals
+for HER, uint8 descriptor images for SB3's CNN, the axis action frame, run directories and resuming."""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from gymnasium.vector import AutoresetMode, SyncVectorEnv
+
+import don_gym  # noqa: F401 - registers the envs
+from don_gym.agents import rl
+from don_gym.checkpoints import CheckpointMetadata, save_checkpoint
+from don_gym.descriptor_sources import axis_end_targets, load_descriptor_source
+from don_gym.errors import DonGymError
+from don_gym.geometry import CameraIntrinsics, make_transform
+from don_gym.model import DenseObjectNet
+from don_gym.objects import load_object
+from don_gym.sim.task import PLACE_TOLERANCE_M, seated_pose
+from don_gym.wrappers import (
+    DescriptorImage,
+    DescriptorObservation,
+    KeypointGoal,
+    KeypointNoiseModel,
+    KeypointObservation,
+    SimulatedKeypoints,
+    VectorKeypointObservation,
+)
+from don_gym.wrappers.goals import goal_reached
+from don_gym.wrappers.rl import AXIS_OFFSET_M, AXIS_YAW_RAD, KeypointGraspAction
+from don_gym.wrappers.simulated_keypoints import axis_points_world, in_view, ring_points_facing
+
+sb3 = pytest.importorskip("stable_baselines3")
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def _tiny_checkpoint(path: Path, object_name: str = "toolcap") -> Path:
+    torch.manual_seed(0)
+    metadata = CheckpointMetadata(
+        method="supervised-edge", object_name=object_name, object_mesh_hash="0" * 16, image_size=(48, 36)
+    )
+    save_checkpoint(path, DenseObjectNet(descriptor_dim=3), metadata)
+    return path
+
+
+@pytest.fixture(scope="module")
+def toolcap():
+    return load_object("toolcap")
+
+
+# ------------------------------------------------------------------------------------ batched DON
+def test_batched_descriptor_images_equal_one_image_at_a_time(tmp_path: Path, toolcap) -> None:
+    source = load_descriptor_source(_tiny_checkpoint(tmp_path / "net.safetensors"), toolcap)
+    rgb = np.random.default_rng(0).integers(0, 256, size=(3, 36, 48, 3), dtype=np.uint8)
+    batch = source.descriptor_images(rgb)
+    assert batch.shape == (3, 36, 48, 3) and batch.dtype == np.float32
+    for image, one in zip(rgb, batch, strict=True):
+        np.testing.assert_allclose(one, source.descriptor_image({"rgb": image}), atol=1e-5)
+    with pytest.raises(DonGymError, match=r"uint8 \(N, H, W, 3\)"):
+        source.descriptor_images(rgb[0])
+
+
+def test_vector_keypoints_equal_the_per_env_wrapper(tmp_path: Path) -> None:
+    path = str(_tiny_checkpoint(tmp_path / "net.safetensors"))
+
+    def base():
+        return gym.make("DONToolcapPick-v0", control="ee", image_size=(64, 48), max_steps=2, sensor="ideal")
+
+    def per_env():
+        return KeypointObservation(base(), model=path, keep_images=False)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # an untrained net: references from a reference frame
+        expected = SyncVectorEnv([per_env] * 2, autoreset_mode=AutoresetMode.SAME_STEP)
+        batched = VectorKeypointObservation(
+            SyncVectorEnv([base] * 2, autoreset_mode=AutoresetMode.SAME_STEP), model=path, keep_images=False
+        )
+    try:
+        assert batched.single_observation_space == expected.single_observation_space
+        a, _ = expected.reset(seed=[3, 4])
+        b, _ = batched.reset(seed=[3, 4])
+        pairs = [(a, b)]
+        actions = np.random.default_rng(0).uniform(-1, 1, size=(2, 2, 5)).astype(np.float32)
+        for action in actions:  # the second step ends both episodes: terminal observations too
+            a, *_, info_a = expected.step(action)
+            b, *_, info_b = batched.step(action)
+            pairs.append((a, b))
+        assert info_b["_final_obs"].all()
+        pairs += [(info_a["final_obs"][i], info_b["final_obs"][i]) for i in range(2)]
+        for a, b in pairs:
+            assert set(a) == set(b) and "keypoint_points" in b
+            for key in a:
+                np.testing.assert_allclose(a[key], b[key], atol=1e-4, err_msg=key)
+    finally:
+        expected.close()
+        batched.close()
+
+
+# ------------------------------------------------------------------------------ model of the DON
+def test_simulated_keypoints_match_the_oracle_pipeline_and_apply_a_noise_model(tmp_path: Path, toolcap) -> None:
+    env = gym.make("DONToolcapPick-v0", control="ee", image_size=(160, 120), sensor="ideal")
+    oracle = KeypointObservation(env, model="oracle", keep_images=False)
+    exact = SimulatedKeypoints(env, noise=None)
+    obs_oracle, _ = oracle.reset(seed=7)
+    obs_exact, info = exact.reset(seed=7)
+    assert exact.observation_space.contains(obs_exact)
+    error_mm = 1000 * np.linalg.norm(obs_exact["keypoint_points"] - obs_oracle["keypoint_points"], axis=1)
+    assert np.all(error_mm < 3.0), error_mm
+    assert np.all(obs_exact["keypoint_confidence"] == 1.0)
+
+    # A noise model of constant 1 cm error along the camera's optical axis, every episode flipped.
+    rows = np.array([0, 1])
+    noise = KeypointNoiseModel(
+        keypoint=rows,
+        error_camera_m=np.array([[0.0, 0.0, 0.01], [0.0, 0.0, 0.01]]),
+        confidence=np.array([0.7, 0.7]),
+        flip_rate=1.0,
+        object_name=toolcap.name,
+        object_mesh_hash=toolcap.mesh_hash,
+        source="test",
+    )
+    loaded = KeypointNoiseModel.load(noise.save(tmp_path / "noise.keypoint-noise.npz"))
+    np.testing.assert_allclose(loaded.error_camera_m, noise.error_camera_m, atol=1e-7)  # stored as float32
+    noisy = SimulatedKeypoints(gym.make("DONToolcapPick-v0", control="ee", image_size=None), noise=loaded)
+    obs, info = noisy.reset(seed=7)
+    truth = ring_points_facing(toolcap, noisy.targets, info["T_world_object"], info["T_world_camera"][:3, 3])
+    shift = info["T_world_camera"][:3, :3] @ np.array([0.0, 0.0, 0.01])
+    np.testing.assert_allclose(obs["keypoint_points"], truth[::-1] + shift, atol=1e-5)  # swapped ends
+    np.testing.assert_allclose(obs["keypoint_confidence"], 0.7)
+    noisy.close()
+
+    shaft = load_object("shaft")
+    other = KeypointNoiseModel(rows, noise.error_camera_m, noise.confidence, 0.0, shaft.name, shaft.mesh_hash)
+    with pytest.raises(DonGymError, match=r"noise=.*measured on object 'shaft'.*'toolcap'"):
+        SimulatedKeypoints(env, noise=other)
+    with pytest.raises(DonGymError, match="no-such-net"):
+        SimulatedKeypoints(env, noise="toolcap/no-such-net")
+    env.close()
+
+
+def test_in_view_is_a_field_of_view_test() -> None:
+    intrinsics = CameraIntrinsics.d435(64, 48)
+    T_world_camera = make_transform(translation=[0.0, 0.0, -1.0])  # looking along world +z
+    points = np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.0, 0.0, -2.0]])
+    uv, visible = in_view(points, T_world_camera, intrinsics)
+    assert visible.tolist() == [True, False, False]
+    np.testing.assert_allclose(uv[0], [intrinsics.cx, intrinsics.cy])
+
+
+# ---------------------------------------------------------------------------------------- goals
+def test_goal_env_passes_sb3_check_env_and_rewards_agree_with_success(toolcap) -> None:
+    from stable_baselines3.common.env_checker import check_env
+
+    env = KeypointGoal(SimulatedKeypoints(gym.make("DONToolcapPick-v0", control="ee", image_size=None)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_env(env, warn=True, skip_render_check=True)
+    obs, _ = env.reset(seed=0)
+    targets = axis_end_targets(toolcap)
+    seated = axis_points_world(toolcap, targets, seated_pose(toolcap)).reshape(6)
+    np.testing.assert_allclose(obs["desired_goal"], seated, atol=1e-6)
+    # Vectorised: the goal itself, within / beyond the task's placement distance, the part reversed.
+    moved = seated + np.tile([0.0, 0.0, 0.9 * PLACE_TOLERANCE_M], 2)
+    away = seated + np.tile([0.0, 0.0, 1.1 * PLACE_TOLERANCE_M], 2)
+    reversed_part = seated.reshape(2, 3)[::-1].reshape(6)
+    rewards = env.compute_reward(np.stack([seated, moved, away, reversed_part]), np.tile(seated, (4, 1)), [{}] * 4)
+    np.testing.assert_array_equal(rewards, [0.0, 0.0, -1.0, -1.0])
+    env.close()
+
+    # A grasp-and-place the task judges a success leaves the part at the goal.
+    grasp = gym.make("DONToolcapPick-v0", control="grasp", image_size=None).unwrapped
+    grasp.reset(seed=1)
+    *_, info = grasp.step(grasp.oracle_action())
+    assert info["is_success"]
+    assert goal_reached(axis_points_world(toolcap, targets, info["T_world_object"]).reshape(6), seated)
+    grasp.close()
+
+
+def test_sac_her_trains_writes_its_run_and_resumes(tmp_path: Path) -> None:
+    env_kwargs = {"keypoints": "true", "goal": "lift", "max_steps": 10}
+    algo_kwargs = {
+        "learning_starts": 20, "batch_size": 16, "buffer_size": 1000, "policy_kwargs": {"net_arch": [16, 16]}
+    }  # fmt: skip
+    run_dir = tmp_path / "run"
+    first = rl.train("sac", 40, seed=0, env_kwargs=env_kwargs, algo_kwargs=algo_kwargs, progress=False,
+                     run_dir=run_dir, save_every=20)  # fmt: skip
+    model = first.model
+    assert type(model.replay_buffer).__name__ == "HerReplayBuffer"
+    # The policy sees the keypoints and the desired goal, not the true achieved goal.
+    assert set(model.policy.actor.features_extractor.extractors) == {"observation", "desired_goal"}
+    for name in ("config", "curve_csv", "curve_png", "model", "last_model", "last_buffer", "last_curve"):
+        assert (run_dir / rl.RUN_FILES[name]).is_file(), name
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["seeds"] == {"algorithm": 0, "envs_first_reset": [0]} and config["finished"]
+    assert len(rl.LearningCurve.read_csv(run_dir / "curve.csv").successes) == len(first.curve.successes) == 4
+    resumed = rl.train("sac", 60, seed=0, env_kwargs=env_kwargs, algo_kwargs=algo_kwargs, progress=False,
+                       run_dir=run_dir, resume=True)  # fmt: skip
+    assert resumed.model.num_timesteps == 60 and len(resumed.curve.successes) == 6
+    with pytest.raises(DonGymError, match="other"):
+        rl.train("sac", 80, env_kwargs=env_kwargs | {"max_steps": 5}, run_dir=run_dir, resume=True, progress=False)
+    with pytest.raises(DonGymError, match="nothing|holds no"):
+        rl.train("sac", 80, env_kwargs=env_kwargs, run_dir=tmp_path / "empty", resume=True, progress=False)
+
+
+# ------------------------------------------------------------------------------ descriptor images
+def test_descriptor_images_are_sb3_images_with_a_cnn() -> None:
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.env_checker import check_env
+    from stable_baselines3.common.torch_layers import NatureCNN
+
+    env = gym.make("DONToolcapPick-v0", control="ee", image_size=(64, 48), sensor="ideal")
+    described = DescriptorObservation(env, model="oracle")
+    images = DescriptorImage(described, keep=("ee_pose", "gripper_width"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_env(images, warn=True, skip_render_check=True)
+    obs, _ = images.reset(seed=0)
+    assert obs["descriptors"].dtype == np.uint8 and obs["descriptors"].shape == (48, 64, 3)
+    float_obs, _ = described.reset(seed=0)
+    recovered = obs["descriptors"] * images.descriptor_scale
+    np.testing.assert_allclose(recovered, np.clip(float_obs["descriptors"], 0, 1), atol=images.descriptor_scale)
+    model = PPO("MultiInputPolicy", images, n_steps=8, batch_size=8, device="cpu")
+    assert isinstance(model.policy.features_extractor.extractors["descriptors"], NatureCNN)
+    with pytest.raises(DonGymError, match="36x36"):
+        DescriptorImage(described, size=(32, 24))
+    env.close()
+
+
+# --------------------------------------------------------------------------------- axis actions
+class _GraspEnv(gym.Env):
+    control = "grasp"
+
+    def __init__(self, points: np.ndarray, confidence: np.ndarray):
+        self.observation_space = gym.spaces.Dict(
+            {
+                "keypoint_points": gym.spaces.Box(-10, 10, shape=(2, 3), dtype=np.float32),
+                "keypoint_confidence": gym.spaces.Box(0, 1, shape=(2,), dtype=np.float32),
+            }
+        )
+        self.action_space = gym.spaces.Box(-5, 5, shape=(4,), dtype=np.float32)
+        self.points, self.confidence = points, confidence
+
+    def reset(self, *, seed=None, options=None):
+        return {"keypoint_points": self.points, "keypoint_confidence": self.confidence}, {}
+
+    def step(self, action):
+        return self.reset()[0], 0.0, True, False, {"action": action}
+
+
+def test_axis_action_frame_is_residual_about_the_keypoints() -> None:
+    points = np.array([[0.5, 0.0, 0.02], [0.5, 0.02, 0.02]], np.float32)  # axis along world +y
+    env = KeypointGraspAction(_GraspEnv(points, np.ones(2, np.float32)), frame="axis")
+    assert env.action_space.shape == (4,)
+    env.reset()
+    np.testing.assert_allclose(env.grasp_action(np.zeros(4)), [0.5, 0.01, 0.02, np.pi / 2], atol=1e-6)
+    moved = env.grasp_action(np.array([1.0, 1.0, -1.0, 1.0]))
+    np.testing.assert_allclose(moved[:3], [0.5 - AXIS_OFFSET_M, 0.01 + AXIS_OFFSET_M, 0.02 - AXIS_OFFSET_M], atol=1e-6)
+    assert moved[3] == pytest.approx(np.pi / 2 + AXIS_YAW_RAD)
+    # One keypoint not found: the frame falls back to the centroid of the found one, yaw 0.
+    lost = KeypointGraspAction(_GraspEnv(points, np.array([1.0, 0.0], np.float32)), frame="axis")
+    lost.reset()
+    np.testing.assert_allclose(lost.grasp_action(np.zeros(4)), [0.5, 0.0, 0.02, 0.0], atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------ bad input
+def test_bad_rl_inputs_give_one_line_errors(tmp_path: Path) -> None:
+    shaft_net = _tiny_checkpoint(tmp_path / "shaft.safetensors", object_name="shaft")
+    with pytest.raises(DonGymError, match="shaft"):
+        rl.make_sac_env(keypoint_model=str(shaft_net), image_size=(64, 48))
+    with pytest.raises(DonGymError, match="n_envs=0"):
+        rl.train("sac", 10, n_envs=0)
+    with pytest.raises(DonGymError, match="n_envs=0"):
+        rl.make_batched_sac_vec_env(0)
+    with pytest.raises(DonGymError, match="keypoints='camera'"):
+        rl.make_sac_env(keypoints="camera")
+    with pytest.raises(DonGymError, match="goal='stack'"):
+        rl.make_sac_env(goal="stack", keypoints="true")
+    with pytest.raises(DonGymError, match="vectorize='batched'"):
+        rl.make_vec_env("ppo", 2, 0, {}, vectorize="batched")

@@ -1,0 +1,130 @@
+"""A goal-conditioned view of the pick-and-place task for hindsight experience replay (HER).
+
+:class:`KeypointGoal` turns a keypoint observation (:class:`~don_gym.wrappers.KeypointObservation`,
+:class:`~don_gym.wrappers.SimulatedKeypoints`) into the ``observation`` / ``achieved_goal`` /
+``desired_goal`` dict that stable-baselines3's ``HerReplayBuffer`` expects, goals being the part's two
+axis-end keypoints (6 numbers, world metres), and gives the vectorised ``compute_reward`` HER relabels with.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from don_gym.descriptor_sources import DEFAULT_AXIS_FRACTIONS, axis_end_targets, env_object_model
+from don_gym.errors import DonGymError
+from don_gym.sim.task import seated_pose, within_placement_tolerance
+from don_gym.wrappers.keypoints import POINT_BOUND_M
+from don_gym.wrappers.rl import KeypointFeatures
+from don_gym.wrappers.simulated_keypoints import axis_points_world
+
+#: Goals :class:`KeypointGoal` offers: the task's placement, or lifting the part where it lies.
+GOALS = ("place", "lift")
+#: The lift sub-task's goal: the part's keypoints this far (m) above where they were at reset.
+LIFT_GOAL_HEIGHT_M = 0.06
+
+
+def goal_reached(achieved_goal: np.ndarray, desired_goal: np.ndarray) -> np.ndarray:
+    """Elementwise over leading axes: do two keypoint goals (..., 6) place the part alike?
+
+    Each goal is two axis points (minus end, plus end); the part counts as placed at the desired goal
+    when the midpoints are within the task's placement distance and the axis directions within its
+    axis tolerance (:func:`don_gym.sim.task.within_placement_tolerance`). The task measures the
+    distance horizontally and also asks that the part rest in the cradle; here it is 3D, which
+    keeps a part held above the cradle from counting.
+    """
+    a = np.asarray(achieved_goal, dtype=np.float64)
+    d = np.asarray(desired_goal, dtype=np.float64)
+    if a.shape[-1:] != (6,) or d.shape[-1:] != (6,):
+        raise DonGymError(f"goals: expected (..., 6) keypoint goals, got shapes {a.shape} and {d.shape}")
+    a = a.reshape(*a.shape[:-1], 2, 3)
+    d = d.reshape(*d.shape[:-1], 2, 3)
+    distance = np.linalg.norm(a.mean(axis=-2) - d.mean(axis=-2), axis=-1)
+    axis_a, axis_d = a[..., 1, :] - a[..., 0, :], d[..., 1, :] - d[..., 0, :]
+    norms = np.linalg.norm(axis_a, axis=-1) * np.linalg.norm(axis_d, axis=-1)
+    cosine = np.sum(axis_a * axis_d, axis=-1) / np.maximum(norms, 1e-12)
+    return within_placement_tolerance(distance, np.arccos(np.clip(cosine, -1.0, 1.0)))
+
+
+class KeypointGoal(gym.Wrapper, gym.utils.RecordConstructorArgs):
+    """Goal-conditioned observations and sparse goal rewards over a keypoint observation.
+
+    Observation: ``observation`` the flat vector of :class:`~don_gym.wrappers.KeypointFeatures`
+    (the keypoints the wrapped env reports, relative to the TCP, and the robot state);
+    ``achieved_goal`` (6,) the TRUE axis points of the part at the two keypoints' axial positions
+    (:func:`~don_gym.wrappers.simulated_keypoints.axis_points_world`, from ``info``), world metres;
+    ``desired_goal`` (6,) the same points of the part where the goal wants it: ``goal="place"``
+    seated in the cradle (:func:`don_gym.sim.task.seated_pose`), ``goal="lift"`` (a sub-task)
+    :data:`LIFT_GOAL_HEIGHT_M` above where it lay at reset.
+
+    The achieved goal is privileged state, as in the usual HER benchmarks: it serves rewards and
+    relabelling; a policy that is to see the part only through the keypoints must leave it out of
+    its input (``don_gym.agents.rl`` does).
+
+    Reward: :meth:`compute_reward`, 0 where :func:`goal_reached`, else -1. ``info["is_success"]``:
+    for ``"place"`` the env's (the task's ``grasp_and_place``, which implies the goal is reached;
+    it also needs the part released and at rest in the cradle); for ``"lift"`` the goal reached
+    with the part lifted (``info["lifted"]``), which ends the episode.
+    """
+
+    def __init__(
+        self,
+        env: gym.Env,
+        goal: str = "place",
+        fractions: tuple[float, float] = DEFAULT_AXIS_FRACTIONS,
+    ) -> None:
+        gym.utils.RecordConstructorArgs.__init__(self, goal=goal, fractions=fractions)
+        gym.Wrapper.__init__(self, env)
+        if goal not in GOALS:
+            raise DonGymError(f"goal={goal!r} is unknown; expected one of {list(GOALS)}")
+        if getattr(env.unwrapped, "control", None) != "ee":
+            raise DonGymError("KeypointGoal needs an env with control='ee' (a goal is reached over many steps)")
+        self.goal = goal
+        self.object_model = env_object_model(env)
+        self.targets = axis_end_targets(self.object_model, fractions=fractions)
+        self.features = KeypointFeatures(env, relative_to="tcp", robot_state=True)
+        self._seated_goal = self._goal_of(seated_pose(self.object_model))
+        self._desired = self._seated_goal.copy()
+        goal_space = spaces.Box(-POINT_BOUND_M, POINT_BOUND_M, shape=(6,), dtype=np.float32)
+        self.observation_space = spaces.Dict(
+            {"observation": self.features.observation_space, "achieved_goal": goal_space, "desired_goal": goal_space}
+        )
+
+    def _goal_of(self, T_world_object: np.ndarray) -> np.ndarray:
+        points = axis_points_world(self.object_model, self.targets, T_world_object)
+        return np.clip(points.reshape(6), -POINT_BOUND_M, POINT_BOUND_M).astype(np.float32)
+
+    def _observation(self, obs: dict[str, np.ndarray], info: dict[str, Any]) -> dict[str, np.ndarray]:
+        if "T_world_object" not in info:
+            raise DonGymError("KeypointGoal needs the true part pose in info ('T_world_object')")
+        return {
+            "observation": self.features.observation(obs),
+            "achieved_goal": self._goal_of(info["T_world_object"]),
+            "desired_goal": self._desired.copy(),
+        }
+
+    def compute_reward(self, achieved_goal: np.ndarray, desired_goal: np.ndarray, info: Any) -> np.ndarray:
+        """Sparse goal reward, vectorised over leading axes: 0 where :func:`goal_reached`, else -1 (float32)."""
+        return goal_reached(achieved_goal, desired_goal).astype(np.float32) - 1.0
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        if self.goal == "lift":
+            start = self._goal_of(info["T_world_object"]).reshape(2, 3)
+            self._desired = (start + np.array([0.0, 0.0, LIFT_GOAL_HEIGHT_M])).reshape(6).astype(np.float32)
+        else:
+            self._desired = self._seated_goal.copy()
+        return self._observation(obs, info), info
+
+    def step(self, action: Any):
+        obs, _, terminated, truncated, info = self.env.step(action)
+        observation = self._observation(obs, info)
+        reward = float(self.compute_reward(observation["achieved_goal"], observation["desired_goal"], info))
+        if self.goal == "lift":
+            info = dict(info)
+            info["is_success"] = bool(reward == 0.0 and info.get("lifted", False))
+            terminated = bool(terminated or info["is_success"])
+        return observation, reward, terminated, truncated, info
