@@ -672,6 +672,8 @@ def train(
         vec_env.close()
     wall_s = time.perf_counter() - start
     if run_path is not None:
+        # The last state is the final one: --resume on a finished run trains no further.
+        save_checkpoint(model, curve, run_path)
         write_run_outputs(run_path, model, curve, algorithm, config | {"wall_s": wall_s, "finished": True})
     return RLTrainResult(model=model, curve=curve, wall_s=wall_s, run_dir=run_path)
 

@@ -3,8 +3,10 @@
 Baseline ("direct"): robust_laplacian on the mesh as given and ``eigsh(L, k, M=M, sigma=-1e-8)``, the
 standard solve (docs/background.md, section "Optimal descriptors"); compared: ``embed(method="direct")``
 and ``embed()``, timed best of ``--repeats`` interleaved runs, and the largest difference of their
-descriptors. Meshes: the bunny Loop-subdivided and the toolcap with split triangles (``--quick``: the
-smaller ones). Writes the "descriptors" section of benchmarks/RESULTS.md (unless --no-record).
+descriptors (modulo the basis of repeated eigenvalues for plain eigenmaps). Meshes: the bunny
+Loop-subdivided and the toolcap with split triangles, then families the solver was not tuned on:
+ellipsoids, spheres, scan-like and CAD-like meshes (``--quick``: the smaller ones). Writes the
+"descriptors" section of benchmarks/RESULTS.md (unless --no-record).
 """
 
 from __future__ import annotations

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from don_gym.checkpoints import read_checkpoint_metadata
 from don_gym.zoo import SHIPPED_DIR, shipped_names
 
 MANIFEST_PATH = SHIPPED_DIR / "MANIFEST.json"
@@ -171,15 +172,9 @@ def changed_modules(old: Mapping[str, Mapping[str, str]], new: Mapping[str, Mapp
 
 
 def weights_sha256(name: str) -> str:
-    """sha256 of a shipped network's tensors (names, shapes, dtypes and bytes), not of its metadata, which
-    ``train_shipped.py --restamp`` may add to without touching the weights."""
-    blob = (SHIPPED_DIR / f"{name}.safetensors").read_bytes()
-    header_size = int.from_bytes(blob[:8], "little")
-    header = json.loads(blob[8 : 8 + header_size])
-    header.pop("__metadata__", None)
-    digest = hashlib.sha256(json.dumps(header, sort_keys=True).encode())
-    digest.update(blob[8 + header_size :])
-    return digest.hexdigest()
+    """sha256 of a shipped network's weights as its metadata records it (the weights alone: the part and
+    field tensors that ``train_shipped.py --restamp`` adds beside them are not covered)."""
+    return read_checkpoint_metadata(SHIPPED_DIR / f"{name}.safetensors").weights_sha256
 
 
 # --- fingerprints ----------------------------------------------------------------------------------

@@ -11,6 +11,8 @@ import math
 import multiprocessing as mp
 import os
 import shutil
+import signal
+import threading
 import time
 import warnings
 from collections.abc import Iterator
@@ -43,8 +45,8 @@ from don_gym.dataset import (
     write_frame,
     write_json,
 )
-from don_gym.descriptors import DescriptorField, embed
-from don_gym.errors import DatasetError, DonGymError
+from don_gym.descriptors import FIELD_MATCH_ATOL, DescriptorField, embed
+from don_gym.errors import DatasetError, DonGymError, SeveralPiecesError
 from don_gym.fusion import fuse_scene, fused_object_masks
 from don_gym.geometry import invert_transform
 from don_gym.io import atomic_path
@@ -200,30 +202,31 @@ def _recorded_scenes(recorded: dict[str, Any], out_dir: Path) -> int:
 
 
 def _resolve_dataset(
-    out_dir: Path, config: DatasetConfig, model: ObjectModel, field: DescriptorField | None, write: bool
+    out_dir: Path, config: DatasetConfig, model: ObjectModel, computed: DescriptorField, write: bool
 ) -> DescriptorField:
-    """Check ``out_dir``'s dataset-level files against ``config`` and return the descriptor field to
-    render targets with (the recorded one when there is one); with ``write``, publish what is missing.
+    """Check ``out_dir``'s dataset-level files against ``config``, the part ``model`` and ``computed`` (its
+    descriptor field computed here), and return the field to render targets with (the recorded one when
+    there is one); with ``write``, publish what is missing.
 
     The one place where a build decides whether it may write into ``out_dir``: called read-only to
     validate before anything is written, then again holding the metadata lock. Files are published
     with an exclusive create, so writers on several machines that race agree on one ``dataset.json``
-    and one ``descriptor_field.npz``; a writer whose options differ from them is refused.
+    and one ``descriptor_field.npz``; a writer whose options differ from them is refused. The part and
+    the field are compared by value within tolerances (:func:`~don_gym.dataset.check_dataset_identity`):
+    machines whose arithmetic differs in the last bits build the same dataset.
     """
     info_path, field_path = out_dir / DATASET_FILE, out_dir / FIELD_FILE
     for _ in range(3):  # another writer may publish a file between our look and our write
         recorded = check_dataset_info(read_json(info_path), info_path) if info_path.is_file() else None
         if recorded is None:
             _check_not_foreign(out_dir)
-        if field_path.is_file():
-            field = _load_field(field_path)
-            if recorded is None:
-                _check_field_fits(field, model, config, out_dir)
-        elif field is None:
-            field = embed(model, dim=config.descriptor_dim, symmetric=config.symmetric)
-        wanted = _dataset_info(config, model, field)
+        field = _load_field(field_path) if field_path.is_file() else None
+        if field is not None and recorded is None:
+            _check_field_fits(field, computed, config, out_dir)
+        wanted = _dataset_info(config, model, field if field is not None else computed)
         if recorded is not None:
-            check_dataset_identity(recorded, wanted, out_dir)
+            check_dataset_identity(recorded, wanted, out_dir, field, computed)
+            _check_recorded_field(field, recorded, computed, out_dir)
             scenes = _recorded_scenes(recorded, out_dir)
             if config.scenes < scenes:
                 raise DatasetError(
@@ -232,11 +235,12 @@ def _resolve_dataset(
                     "to start again, or use another directory"
                 )
         if not write:
-            return field
+            return field if field is not None else computed
         try:
-            if not field_path.is_file():
+            if field is None:
                 with atomic_path(field_path, exclusive=True) as tmp:
-                    field.save(tmp)
+                    computed.save(tmp)
+                field = computed
             if recorded is None:
                 write_json(info_path, wanted, exclusive=True)
             elif config.scenes > _recorded_scenes(recorded, out_dir):
@@ -247,6 +251,17 @@ def _resolve_dataset(
     raise DatasetError(f"{out_dir}: its dataset.json keeps changing while this build starts; try again")
 
 
+def _embed(model: ObjectModel, config: DatasetConfig) -> DescriptorField:
+    """The part's descriptor field as computed here (a new dataset's, or what a recorded one must match)."""
+    try:
+        return embed(model, dim=config.descriptor_dim, symmetric=config.symmetric)
+    except SeveralPiecesError as exc:
+        raise DatasetError(
+            f"object {config.object!r} (--object): {exc.detail}; a dataset needs a part in one piece: join the "
+            "pieces, or keep only the largest, in the mesh file"
+        ) from exc
+
+
 def _load_field(path: Path) -> DescriptorField:
     try:
         return DescriptorField.load(path)
@@ -254,17 +269,43 @@ def _load_field(path: Path) -> DescriptorField:
         raise DatasetError(f"{exc}; pass --overwrite to rebuild the dataset or use another directory") from exc
 
 
-def _check_field_fits(field: DescriptorField, model: ObjectModel, config: DatasetConfig, out_dir: Path) -> None:
-    """A descriptor field without ``dataset.json`` (a build that stopped between the two, or one
-    starting right now): usable only if it is the field these options would compute."""
-    found = (field.mesh_hash, field.dim, field.symmetric)
-    if found != (model.mesh_hash, config.descriptor_dim, config.symmetric):
+def _check_recorded_field(
+    field: DescriptorField | None, recorded: dict[str, Any], computed: DescriptorField, out_dir: Path
+) -> None:
+    """``dataset.json`` names its field file's exact content (``descriptor_field_hash``): the targets of
+    its scenes were rendered from those bits. A file with other content, or none, is refused, except a
+    missing file that the field computed here restores bit for bit."""
+    field_path, expected = out_dir / FIELD_FILE, recorded.get("descriptor_field_hash")
+    if field is None and computed.field_hash == expected:
+        return
+    if field is None or field.field_hash != expected:
+        found = "is missing" if field is None else f"holds the field {field.field_hash}"
         raise DatasetError(
-            f"{out_dir / FIELD_FILE}: holds the descriptor field of another dataset (mesh {field.mesh_hash}, "
-            f"dim {field.dim}, symmetric {field.symmetric}; asked: mesh {model.mesh_hash} of {config.object!r}, "
-            f"dim {config.descriptor_dim}, symmetric {config.symmetric}) and no {DATASET_FILE}: another build is "
-            "starting there or stopped early; pass --overwrite to replace it or use another directory"
+            f"{field_path}: {found}, but {DATASET_FILE} records the field {expected} its scenes were rendered "
+            "from (the file was replaced or deleted); pass --overwrite to rebuild the dataset or use another directory"
         )
+
+
+def _check_field_fits(field: DescriptorField, computed: DescriptorField, config: DatasetConfig, out_dir: Path) -> None:
+    """A descriptor field without ``dataset.json`` (a build that stopped between the two, or one starting
+    right now, maybe on another machine): usable only if it is ``computed``, the field these options give
+    for this part, within :data:`~don_gym.descriptors.FIELD_MATCH_ATOL`."""
+    if (field.dim, field.symmetric) != (config.descriptor_dim, config.symmetric):
+        problem = (
+            f"dim {field.dim}, symmetric {field.symmetric}; asked: dim {config.descriptor_dim}, "
+            f"symmetric {config.symmetric}"
+        )
+    elif field.n_vertices != computed.n_vertices:
+        problem = f"a mesh of {field.n_vertices} vertices; {config.object!r} has {computed.n_vertices}"
+    else:
+        difference = field.max_difference(computed)
+        if difference <= FIELD_MATCH_ATOL:
+            return
+        problem = f"it differs from {config.object!r}'s by {difference:.3g}, tolerance {FIELD_MATCH_ATOL:g}"
+    raise DatasetError(
+        f"{out_dir / FIELD_FILE}: holds the descriptor field of another dataset ({problem}) and no {DATASET_FILE}: "
+        "another build is starting there or stopped early; pass --overwrite to replace it or use another directory"
+    )
 
 
 def _check_renderer_available(renderer: str) -> None:
@@ -314,12 +355,11 @@ def prepare_dataset_dir(
     """
     config.validate()
     model = load_object(config.object, scale=config.object_scale)
-    if overwrite:
-        if out_dir.exists() and not out_dir.is_dir():
-            raise DatasetError(f"{out_dir}: exists and is not a directory; expected a dataset directory")
-        field = embed(model, dim=config.descriptor_dim, symmetric=config.symmetric)
-    else:
-        field = _resolve_dataset(out_dir, config, model, None, write=False)
+    if overwrite and out_dir.exists() and not out_dir.is_dir():
+        raise DatasetError(f"{out_dir}: exists and is not a directory; expected a dataset directory")
+    computed = _embed(model, config)
+    if not overwrite:
+        _resolve_dataset(out_dir, config, model, computed, write=False)
     _check_renderer_available(config.renderer)
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -330,7 +370,7 @@ def prepare_dataset_dir(
             _clear_dir(out_dir)
             lock.share_session()
         with lock.metadata():
-            field = _resolve_dataset(out_dir, config, model, field, write=True)
+            field = _resolve_dataset(out_dir, config, model, computed, write=True)
     except BaseException:
         lock.close()
         raise
@@ -478,8 +518,25 @@ def single_threaded_children() -> Iterator[None]:
                 os.environ[name] = value
 
 
+@contextlib.contextmanager
+def _children_ignore_ctrl_c() -> Iterator[None]:
+    """Processes started inside ignore SIGINT from their first instruction (the disposition survives exec),
+    not only once their initializer runs; a Ctrl-C that reaches this process meanwhile is dropped."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def _worker_init(config: DatasetConfig, out_dir: str, field_path: str) -> None:
     global _WORKER  # one writer per worker process, created once
+    # Ctrl-C reaches every process of the terminal's process group; the parent stops the pool, and a
+    # worker that took it too would print a traceback of its own.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     lock = DatasetLock(Path(out_dir))
     # Joins the writers, so that an --overwrite never deletes under a worker that outlives its parent.
     lock.hold_session()
@@ -551,18 +608,17 @@ def _write_in_process(
 
 
 def _write_in_workers(config: DatasetConfig, out_dir: Path, workers: int, todo: list[int]) -> Iterator[int]:
-    context = mp.get_context("spawn")
-    # One BLAS/OpenMP thread per worker: the workers already fill the cores, and
-    # oversubscription makes a 2-worker build slower than a 1-worker one.
-    with single_threaded_children():
-        pool = ProcessPoolExecutor(
-            workers,
-            mp_context=context,
-            initializer=_worker_init,
-            initargs=(config, str(out_dir), str(out_dir / FIELD_FILE)),
-        )
+    pool = ProcessPoolExecutor(
+        workers,
+        mp_context=mp.get_context("spawn"),
+        initializer=_worker_init,
+        initargs=(config, str(out_dir), str(out_dir / FIELD_FILE)),
+    )
     try:
-        pending = {pool.submit(_worker_write, i) for i in todo}
+        # Spawned workers start at the first submissions. One BLAS/OpenMP thread each: the workers already
+        # fill the cores, and oversubscription makes a 2-worker build slower than a 1-worker one.
+        with single_threaded_children(), _children_ignore_ctrl_c():
+            pending = {pool.submit(_worker_write, i) for i in todo}
         while pending:
             done, pending = wait(pending, return_when=FIRST_COMPLETED)
             for future in done:

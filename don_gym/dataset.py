@@ -19,7 +19,7 @@ import tempfile
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -27,6 +27,10 @@ import numpy as np
 from don_gym.errors import DatasetError
 from don_gym.geometry import CameraIntrinsics
 from don_gym.io import atomic_path, write_png, write_text_atomic
+
+if TYPE_CHECKING:  # imported where used, to keep this module light
+    from don_gym.descriptors import DescriptorField
+    from don_gym.objects import ShapeSignature
 
 FORMAT_NAME = "don_gym-dataset"
 FORMAT_VERSION = 1
@@ -45,13 +49,13 @@ DEPTH_SOURCES = {"fused": ("depth_fused", "mask_fused"), "sensor": ("depth", "ma
 #: Largest depth a uint16 millimetre PNG can hold, metres.
 PNG_DEPTH_MAX_M = 65.535
 
-#: Settings of ``dataset.json`` that shape the data, so they must match for two builds to share a
-#: directory, each with the ``build-dataset`` option that sets it (named in refusals).
+#: Settings of ``dataset.json`` that shape the data, so they must be equal for two builds to share a
+#: directory, each with the ``build-dataset`` option that sets it (named in refusals). The part and the
+#: descriptor field are compared by value within tolerances (:func:`check_dataset_identity`), never by
+#: hashes of float bits, which differ between machines for the same part.
 IDENTITY_KEYS = {
-    "mesh_hash": "--object/--object-scale (the object's mesh)",
     "descriptor_dim": "--dim",
     "symmetric": "--no-symmetry",
-    "descriptor_field_hash": "the descriptor field",
     "image_size": "--size",
     "frames_per_scene": "--frames",
     "sensor": "--sensor",
@@ -186,20 +190,60 @@ def check_dataset_info(info: Any, path: Path) -> dict[str, Any]:
     return info
 
 
-def check_dataset_identity(existing: Mapping[str, Any], wanted: Mapping[str, Any], root: Path) -> None:
+def part_differences(info: Mapping[str, Any], signature: ShapeSignature, mesh_hash: str, source: Path) -> list[str]:
+    """How a part with ``signature`` (and ``mesh_hash``) differs from the one recorded in ``info`` (the
+    ``dataset.json`` at ``source``), as ``"name given vs recorded"``; empty: the same part. Decided by the
+    shape signature within :data:`~don_gym.objects.SHAPE_MATCH_RTOL`; a dataset written before signatures
+    by its mesh hash (equal only on one machine)."""
+    from don_gym.errors import MeshError
+    from don_gym.objects import ShapeSignature
+
+    recorded = info.get("object_signature")
+    if recorded:
+        try:
+            return signature.differences(ShapeSignature.from_dict(recorded, f"{source}: object_signature"))
+        except MeshError as exc:
+            raise DatasetError(f"{exc}; the file is corrupt") from exc
+    if info.get("mesh_hash") not in (None, mesh_hash):
+        return [f"mesh hash {mesh_hash} vs {info['mesh_hash']}"]
+    return []
+
+
+def check_dataset_identity(
+    existing: Mapping[str, Any],
+    wanted: Mapping[str, Any],
+    root: Path,
+    recorded_field: DescriptorField | None = None,
+    computed_field: DescriptorField | None = None,
+) -> None:
     """Raise DatasetError, naming each differing option with both values, if ``existing`` (dataset.json
-    on disk) and ``wanted`` describe different data."""
-    check_dataset_info(existing, Path(root) / DATASET_FILE)
-    different = [k for k in IDENTITY_KEYS if _to_jsonable(existing.get(k)) != _to_jsonable(wanted.get(k))]
-    if different:
-        on_disk, asked = _to_jsonable(existing), _to_jsonable(wanted)
-        details = "; ".join(
-            f"{k} ({IDENTITY_KEYS[k]}): {on_disk.get(k)!r} on disk, {asked.get(k)!r} asked" for k in different
-        )
+    on disk) and ``wanted`` describe different data: settings (:data:`IDENTITY_KEYS`) must be equal, the
+    part the same by :func:`part_differences`, and ``recorded_field`` (the dataset's field file) within
+    :data:`~don_gym.descriptors.FIELD_MATCH_ATOL` of ``computed_field`` (the part's field computed here)."""
+    from don_gym.descriptors import FIELD_MATCH_ATOL
+    from don_gym.objects import ShapeSignature
+
+    info_path = Path(root) / DATASET_FILE
+    check_dataset_info(existing, info_path)
+    on_disk, asked = _to_jsonable(existing), _to_jsonable(wanted)
+    different = [k for k in IDENTITY_KEYS if on_disk.get(k) != asked.get(k)]
+    details = [f"{k} ({IDENTITY_KEYS[k]}): {on_disk.get(k)!r} on disk, {asked.get(k)!r} asked" for k in different]
+    signature = ShapeSignature.from_dict(wanted["object_signature"])
+    part = part_differences(existing, signature, str(wanted["mesh_hash"]), info_path)
+    if part:
+        details.append(f"the part (--object/--object-scale): {', '.join(part[:3])} (asked vs on disk)")
+    elif recorded_field is not None and computed_field is not None and not different:
+        difference = recorded_field.max_difference(computed_field)
+        if difference > FIELD_MATCH_ATOL:
+            details.append(
+                f"the descriptor field ({FIELD_FILE}) differs from the part's computed here by {difference:.3g} "
+                f"(max abs difference; tolerance {FIELD_MATCH_ATOL:g})"
+            )
+    if details:
         objects = f" [object {existing.get('object')!r} on disk, {wanted.get('object')!r} asked]"
         empty = not any((p / SCENE_FILE).is_file() for p in (Path(root) / "scenes").glob("scene_*"))
         raise DatasetError(
-            f"{root}: holds a different dataset ({details}){objects if 'mesh_hash' in different else ''}; "
+            f"{root}: holds a different dataset ({'; '.join(details)}){objects if part else ''}; "
             f"pass --overwrite to replace it{' (it has no complete scene yet)' if empty else ''} "
             "or use another directory"
         )
@@ -369,6 +413,11 @@ class DONDataset:
 
     def __init__(self, root: str | Path) -> None:
         self.root = Path(root)
+        if self.root.exists() and not self.root.is_dir():
+            what = "a file" if self.root.is_file() else "not a directory"
+            raise DatasetError(
+                f"{self.root}: is {what}, not a dataset directory (one written by don-gym build-dataset)"
+            )
         if not self.root.is_dir():
             raise DatasetError(f"dataset directory {str(self.root)!r} does not exist")
         info_path = self.root / DATASET_FILE
@@ -418,21 +467,14 @@ class DONDataset:
         ``object`` was a relative path that is not found from here), checked to be the recorded part: by its
         shape signature, or by mesh hash in a dataset written before signatures. DatasetError otherwise."""
         from don_gym.errors import DonGymError
-        from don_gym.objects import ShapeSignature, builtin_names, load_object
+        from don_gym.objects import builtin_names, load_object
 
         spec, source = str(self.info["object"]), str(self.info.get("object_source", ""))
         if spec not in builtin_names() and not Path(spec).expanduser().exists() and Path(source).is_file():
             spec = source
         try:
             model = load_object(spec, scale=self.info.get("object_scale"))
-            recorded = self.info.get("object_signature")
-            if recorded:
-                signature = ShapeSignature.from_dict(recorded, f"{self.root / DATASET_FILE}: object_signature")
-                differences = model.shape_signature.differences(signature)
-            elif self.info.get("mesh_hash") not in (None, model.mesh_hash):
-                differences = [f"mesh hash {model.mesh_hash} vs {self.info['mesh_hash']}"]
-            else:
-                differences = []
+            differences = part_differences(self.info, model.shape_signature, model.mesh_hash, self.root / DATASET_FILE)
         except DonGymError as exc:
             raise DatasetError(f"{self.root}: the dataset's object cannot be loaded: {exc}") from exc
         if differences:

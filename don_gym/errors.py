@@ -23,3 +23,15 @@ class CheckpointError(DonGymError):
 
 class DatasetError(DonGymError):
     """A dataset directory that is missing, corrupt, or holds a different dataset."""
+
+
+class SeveralPiecesError(MeshError):
+    """A mesh in several connected pieces where one is needed. ``detail`` says so without advice, for
+    callers that give their own (what to pass depends on the caller: a keyword, a CLI option)."""
+
+    def __init__(self, detail: str, advice: str = "") -> None:
+        super().__init__(f"{detail}. {advice}" if advice else detail)
+        self.detail, self.advice = detail, advice
+
+    def __reduce__(self) -> tuple[type, tuple[str, str]]:  # picklable from worker processes
+        return type(self), (self.detail, self.advice)

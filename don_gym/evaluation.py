@@ -17,10 +17,11 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from don_gym.dataset import DEPTH_SOURCES, DONDataset, SceneRecord
-from don_gym.descriptor_sources import DescriptorSource, load_descriptor_source
+from don_gym.descriptor_sources import DescriptorSource, NetworkDescriptors, load_descriptor_source
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics, backproject_depth, invert_transform, project_points, transform_points
 from don_gym.keypoints import descriptor_distances, project_visible
+from don_gym.model import torch_device
 from don_gym.objects import ObjectModel
 
 #: Percentiles reported for every metric.
@@ -332,11 +333,25 @@ def _scene_reference(dataset: DONDataset, scene: int, config: TrackingConfig) ->
     return _SceneReference(frame, uv, points, projections)
 
 
+def _network_images(
+    source: NetworkDescriptors, data: DONDataset, scene: int, frames: Sequence[int], batch_size: int
+) -> dict[int, np.ndarray]:
+    """Descriptor images of ``frames`` of a scene, the network run on ``batch_size`` frames at a time."""
+    images: dict[int, np.ndarray] = {}
+    for start in range(0, len(frames), batch_size):
+        chunk = frames[start : start + batch_size]
+        rgb = np.stack([frame_observation(data, scene, frame)[0]["rgb"] for frame in chunk])
+        images.update(zip(chunk, source.descriptor_images(rgb), strict=True))
+    return images
+
+
 def evaluate_tracking(
     dataset: DONDataset | str | Path,
     methods: Sequence[str] | Mapping[str, str | DescriptorSource],
     config: TrackingConfig = TrackingConfig(),
     progress: bool = True,
+    device: str = "cpu",
+    batch_size: int | None = None,
 ) -> TrackingResult:
     """Run the tracking protocol for each method on every scene of ``dataset``.
 
@@ -351,8 +366,16 @@ def evaluate_tracking(
     the dataset's object); or a mapping from a label to a reference or a ready
     :class:`~don_gym.descriptor_sources.DescriptorSource`. All sources are loaded and checked against the
     dataset's object before any work.
+
+    Networks run on ``device`` (:func:`~don_gym.model.torch_device`: ``"cpu"``, ``"cuda"``, ...), on
+    ``batch_size`` frames of a scene at a time (None: 8 on a GPU, one frame at a time on the CPU); the
+    results differ from one frame at a time on the CPU only by float rounding.
     """
     config.validate()
+    run_on = torch_device(device)
+    if batch_size is not None and (isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1):
+        raise DonGymError(f"batch_size={batch_size!r}: expected an integer >= 1 or None")
+    batch = batch_size if batch_size is not None else (1 if run_on.type == "cpu" else 8)
     data = dataset if isinstance(dataset, DONDataset) else DONDataset(dataset)
     if not methods:
         raise DonGymError("no methods to evaluate; give 'oracle' and/or network names or checkpoint paths")
@@ -361,6 +384,9 @@ def evaluate_tracking(
         raise DonGymError(f"methods {list(methods)}: each method may be given once")
     model = dataset_object(data)
     sources = {name: load_descriptor_source(ref, model) for name, ref in labelled.items()}
+    for source in sources.values():
+        if isinstance(source, NetworkDescriptors):
+            source.network.to(run_on)
     axis = model.symmetry_axis
     scenes = list(range(len(data.scenes)))[: config.max_scenes]
     depth_kind, _ = DEPTH_SOURCES[config.depth]
@@ -373,7 +399,14 @@ def evaluate_tracking(
             reference = _scene_reference(data, scene, config)
             reference_points += len(reference.uv)
             for name, source in sources.items():
-                ref_image = source.descriptor_image(*frame_observation(data, scene, reference.frame))
+                batched: dict[int, np.ndarray] = {}
+                if batch > 1 and isinstance(source, NetworkDescriptors):
+                    seen = [f for f in range(record.num_frames) if reference.projections[f][1].any()]
+                    wanted = [reference.frame] + [f for f in seen if f != reference.frame]
+                    batched = _network_images(source, data, scene, wanted, batch)
+                ref_image = batched.get(reference.frame)
+                if ref_image is None:
+                    ref_image = source.descriptor_image(*frame_observation(data, scene, reference.frame))
                 ref_descriptors = ref_image[reference.uv[:, 1], reference.uv[:, 0]]
                 bar.update(1)
                 for frame in range(record.num_frames):
@@ -384,7 +417,9 @@ def evaluate_tracking(
                     rows = np.flatnonzero(visible)
                     if len(rows) == 0:
                         continue
-                    image = source.descriptor_image(*frame_observation(data, scene, frame))
+                    image = batched.get(frame)
+                    if image is None:
+                        image = source.descriptor_image(*frame_observation(data, scene, frame))
                     matches = match_descriptors(image, ref_descriptors[rows], np.rint(true_uv[rows]).astype(np.int64))
                     depth = data.image(scene, frame, depth_kind)
                     predicted, depth_valid = world_points_at(
@@ -453,9 +488,9 @@ def write_tracking_outputs(result: TrackingResult, out_dir: str | Path) -> dict[
     import json
 
     from don_gym import plotting
-    from don_gym.io import write_text_atomic
+    from don_gym.io import check_output_dir, write_text_atomic
 
-    out = Path(out_dir)
+    out = check_output_dir(out_dir, "out_dir")
     out.mkdir(parents=True, exist_ok=True)
     summary = result.summary()
     paths = {"json": out / "tracking.json", "table": out / "tracking.md"}

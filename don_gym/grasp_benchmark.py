@@ -203,8 +203,9 @@ class EpisodeRunner:
     One per process (each env owns a PyBullet client).
     """
 
-    def __init__(self, config: GraspBenchmarkConfig) -> None:
+    def __init__(self, config: GraspBenchmarkConfig, device: str = "cpu") -> None:
         self.config = config
+        self.device = device
         self._envs: dict[str, Any] = {}
         self._agents: dict[tuple[str, str], tuple[Any, Any]] = {}
 
@@ -225,9 +226,13 @@ class EpisodeRunner:
         key = (sensor, method)
         if key not in self._agents:
             from don_gym.agents import AxisGraspAgent
+            from don_gym.descriptor_sources import NetworkDescriptors
+            from don_gym.model import torch_device
 
             env = self._env(sensor)
             agent = AxisGraspAgent(env, model=method)
+            if isinstance(agent.source, NetworkDescriptors):
+                agent.source.network.to(torch_device(self.device))
             self._agents[key] = (agent, agent.wrap(env))
         return self._agents[key]
 
@@ -277,7 +282,7 @@ class EpisodeRunner:
 _RUNNER: EpisodeRunner | None = None
 
 
-def _worker_init(config: GraspBenchmarkConfig) -> None:
+def _worker_init(config: GraspBenchmarkConfig, device: str = "cpu") -> None:
     global _RUNNER  # one runner per worker process, kept for all its episodes
     import signal
 
@@ -288,7 +293,7 @@ def _worker_init(config: GraspBenchmarkConfig) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # The workers already fill the cores; more threads per worker only contend.
     torch.set_num_threads(1)
-    _RUNNER = EpisodeRunner(config)
+    _RUNNER = EpisodeRunner(config, device)
 
 
 def _worker_run(indexed: tuple[int, EpisodeTask]) -> tuple[int, dict[str, Any]]:
@@ -376,8 +381,11 @@ class GraspBenchmarkResult:
         return out
 
 
-def run_grasp_benchmark(config: GraspBenchmarkConfig, workers: int = 2, progress: bool = True) -> GraspBenchmarkResult:
-    """Run every episode of ``config`` on ``workers`` processes (1: in this process).
+def run_grasp_benchmark(
+    config: GraspBenchmarkConfig, workers: int = 2, progress: bool = True, device: str = "cpu"
+) -> GraspBenchmarkResult:
+    """Run every episode of ``config`` on ``workers`` processes (1: in this process), the networks on
+    ``device`` (:func:`~don_gym.model.torch_device`; each worker process then holds its own copy there).
 
     An episode is ``env.reset(seed, options={"pose_id": k})`` (a random pose: ``env.reset(seed)``) of the grasp-mode env
     (:class:`don_gym.sim.env.PickPlaceEnv`, ``control="grasp"``) and one step with the action of an
@@ -391,6 +399,9 @@ def run_grasp_benchmark(config: GraspBenchmarkConfig, workers: int = 2, progress
     config.validate()
     if workers < 1:
         raise DonGymError(f"workers={workers}: expected at least 1")
+    from don_gym.model import torch_device
+
+    torch_device(device)  # a bad or absent device is refused before any episode
     from don_gym.descriptor_sources import load_descriptor_source
     from don_gym.objects import load_object
 
@@ -413,7 +424,7 @@ def run_grasp_benchmark(config: GraspBenchmarkConfig, workers: int = 2, progress
     workers = min(workers, len(tasks))
     with tqdm(total=len(tasks), unit="episode", desc="grasp benchmark", disable=not progress) as bar:
         if workers == 1:
-            runner = EpisodeRunner(config)
+            runner = EpisodeRunner(config, device)
             try:
                 for index, task in enumerate(tasks):
                     records[index] = runner.run(task)
@@ -426,7 +437,7 @@ def run_grasp_benchmark(config: GraspBenchmarkConfig, workers: int = 2, progress
             context = mp.get_context("spawn")
             with (
                 single_threaded_children(),
-                context.Pool(workers, initializer=_worker_init, initargs=(config,)) as pool,
+                context.Pool(workers, initializer=_worker_init, initargs=(config, device)) as pool,
             ):
                 for index, record in pool.imap_unordered(_worker_run, list(enumerate(tasks))):
                     records[index] = record
@@ -517,9 +528,9 @@ def write_grasp_outputs(result: GraspBenchmarkResult, out_dir: str | Path) -> di
     import json
 
     from don_gym import plotting
-    from don_gym.io import write_text_atomic
+    from don_gym.io import check_output_dir, write_text_atomic
 
-    out = Path(out_dir)
+    out = check_output_dir(out_dir, "out_dir")
     out.mkdir(parents=True, exist_ok=True)
     paths = {"json": out / "grasp_episodes.json", "table": out / "grasp.md"}
     write_text_atomic(

@@ -61,6 +61,30 @@ ARCHS: dict[str, ArchSpec] = {
 DEFAULT_ARCH = "resnet-lite"
 
 
+def validate_device_name(name: str) -> str:
+    """``name`` if it names a device :func:`torch_device` knows, else a :class:`DonGymError`; looks at no hardware."""
+    if not isinstance(name, str) or not re.fullmatch(r"auto|cpu|cuda(:\d+)?", name):
+        raise DonGymError(f"device {name!r} is unknown; expected auto, cpu, cuda or cuda:N")
+    return name
+
+
+def torch_device(name: str) -> torch.device:
+    """The torch device a user names: ``"auto"`` (CUDA if torch sees a GPU, else the CPU), ``"cpu"``,
+    ``"cuda"`` or ``"cuda:N"``; a :class:`DonGymError` for another name or a GPU that is not there."""
+    validate_device_name(name)
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cpu":
+        return torch.device("cpu")
+    if not torch.cuda.is_available():
+        built = "a torch built without CUDA" if torch.version.cuda is None else "no CUDA GPU visible"
+        raise DonGymError(f"device {name!r}: this machine has {built} (torch {torch.__version__}); use --device cpu")
+    index = int(name.partition(":")[2] or 0)
+    if index >= torch.cuda.device_count():
+        raise DonGymError(f"device {name!r}: only {torch.cuda.device_count()} GPU(s) are visible")
+    return torch.device("cuda", index)
+
+
 def validate_arch(arch: str) -> ArchSpec:
     if arch not in ARCHS:
         raise DonGymError(f"network arch {arch!r} is unknown; expected one of {sorted(ARCHS)}")

@@ -8,6 +8,8 @@
 
 from __future__ import annotations
 
+import multiprocessing
+import multiprocessing.context
 from typing import Any
 
 import numpy as np
@@ -310,6 +312,17 @@ def _init_loader_worker(worker_id: int) -> None:
     cv2.setNumThreads(1)
 
 
+def _worker_context() -> multiprocessing.context.BaseContext:
+    """Workers start from a fork server that imported this module and nothing else. Forked from the
+    training process itself, a worker inherits thread pools in use (OpenCV's decodes images in
+    parallel) without their threads, and can hang on their locks."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload([__name__])
+    return context
+
+
 def _as_is(batch: dict[str, Any]) -> dict[str, Any]:
     return batch
 
@@ -325,5 +338,6 @@ def step_loader(batches: StepBatches, first_step: int, workers: int, pin_memory:
         collate_fn=_as_is,
         pin_memory=pin_memory,
         worker_init_fn=_init_loader_worker if workers else None,
+        multiprocessing_context=_worker_context() if workers else None,
         prefetch_factor=2 if workers else None,
     )

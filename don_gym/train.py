@@ -50,10 +50,10 @@ from don_gym.distributed import (
     synchronize_batchnorm,
 )
 from don_gym.errors import DonGymError
-from don_gym.io import atomic_path, write_text_atomic
+from don_gym.io import atomic_path, check_output_dir, write_text_atomic
 from don_gym.losses import batch_contrastive_loss, supervised_l2_loss
 from don_gym.methods import SUPERVISED_TARGET_VARIANT, is_supervised, validate_method
-from don_gym.model import ARCHS, DEFAULT_ARCH, DenseObjectNet, validate_arch
+from don_gym.model import ARCHS, DEFAULT_ARCH, DenseObjectNet, torch_device, validate_arch, validate_device_name
 from don_gym.objects import part_name
 from don_gym.plotting import plot_loss_curve
 from don_gym.torch_data import CorrespondencePairs, StepBatches, SupervisedFrames, step_loader
@@ -178,8 +178,7 @@ def validate_config(config: TrainConfig) -> None:
         AugmentConfig(**config.augment)
     except TypeError as exc:
         raise DonGymError(f"augment: {exc}; the settings are {[f.name for f in fields(AugmentConfig)]}") from None
-    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", str(config.device)):
-        raise DonGymError(f"device {config.device!r} is unknown; expected auto, cpu, cuda or cuda:N")
+    validate_device_name(config.device)
     if config.precision not in PRECISIONS:
         raise DonGymError(f"precision {config.precision!r} is unknown; expected one of {list(PRECISIONS)}")
     if config.backend not in BACKENDS:
@@ -192,24 +191,19 @@ def validate_config(config: TrainConfig) -> None:
 
 
 def resolve_device(name: str, launch: LaunchEnvironment = SINGLE_PROCESS) -> torch.device:
-    """The torch device for ``TrainConfig.device``; under torchrun each process takes GPU ``LOCAL_RANK``."""
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name == "cpu":
-        return torch.device("cpu")
-    if not torch.cuda.is_available():
-        built = "a torch built without CUDA" if torch.version.cuda is None else "no CUDA GPU visible"
-        raise DonGymError(f"device {name!r}: this machine has {built} (torch {torch.__version__}); use --device cpu")
-    count = torch.cuda.device_count()
-    if launch.world_size > 1:
-        if name != "cuda":
-            raise DonGymError(f"device {name!r}: under torchrun use --device cuda; process k takes GPU LOCAL_RANK=k")
-        index = launch.local_rank
-    else:
-        index = int(name.partition(":")[2] or 0)
-    if index >= count:
-        raise DonGymError(f"device cuda:{index} (rank {launch.rank}): only {count} GPU(s) are visible")
-    return torch.device("cuda", index)
+    """The torch device for ``TrainConfig.device`` (:func:`~don_gym.model.torch_device`); under torchrun each
+    process takes GPU ``LOCAL_RANK``."""
+    device = torch_device(name)
+    if launch.world_size == 1 or device.type == "cpu":
+        return device
+    if name not in ("auto", "cuda"):
+        raise DonGymError(f"device {name!r}: under torchrun use --device cuda; process k takes GPU LOCAL_RANK=k")
+    if launch.local_rank >= torch.cuda.device_count():
+        raise DonGymError(
+            f"rank {launch.rank}: LOCAL_RANK {launch.local_rank} but only {torch.cuda.device_count()} GPU(s) are "
+            "visible; start at most one process per GPU"
+        )
+    return torch.device("cuda", launch.local_rank)
 
 
 def autocast_dtype(precision: str, device: torch.device) -> torch.dtype | None:
@@ -265,12 +259,25 @@ def _changed_settings(saved: dict[str, Any], config: TrainConfig, identity: str)
     return changed if same_data else sorted([*changed, "data"])
 
 
+def _short_reason(exc: Exception) -> str:
+    """The gist of a ``torch.load`` failure: its specific line, without PyTorch's paragraph on ``weights_only``."""
+    text = str(exc).split("WeightsUnpickler error:", 1)[-1]
+    line = next((s.strip() for s in text.splitlines() if s.strip()), type(exc).__name__)
+    reason = line.split(". ")[0].rstrip(".")
+    return reason if len(reason) <= 120 else reason[:117] + "..."
+
+
 def _read_train_state(path: Path) -> dict[str, Any]:
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
+    except OSError as exc:
+        raise DonGymError(f"run dir {path.parent}: {path.name}: cannot be read ({exc.strerror or exc})") from None
     except Exception as exc:  # any unpickling failure means a damaged file
-        detail = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        raise DonGymError(f"{path}: cannot be read ({detail}); the run cannot be resumed from it") from None
+        # Deleting the state makes --resume start the run over: checkpoints hold weights but no optimiser.
+        raise DonGymError(
+            f"run dir {path.parent}: {path.name}: cannot be read, the file is damaged ({_short_reason(exc)}); "
+            "delete it to train this run again from step 0, or train into a new --out"
+        ) from None
     keys = ("model", "optimizer", "scheduler", "step")
     if not isinstance(state, dict) or any(k not in state for k in keys):
         raise DonGymError(f"{path}: not a training state (expected the keys {list(keys)})")
@@ -356,6 +363,7 @@ def _inspect_run_dir(out: Path, config: TrainConfig, identity: str, resume: bool
     """Read-only: the state to resume from (None: start afresh), or a user error."""
     if out.exists() and not out.is_dir():
         raise DonGymError(f"--out {out}: is a file; expected a run directory (new or to --resume)")
+    check_output_dir(out, "--out")  # a read-only or forbidden place is refused before the work
     state_path = out / TRAIN_STATE
     if not state_path.exists():
         # No progress saved (e.g. a run that failed before its first checkpoint): nothing to keep.

@@ -39,8 +39,8 @@ from don_gym.dataset import DONDataset
 from don_gym.descriptor_sources import load_descriptor_source
 from don_gym.descriptors import embed
 from don_gym.errors import DonGymError
-from don_gym.evaluation import TrackingConfig, evaluate_tracking
-from don_gym.grasp_benchmark import GraspBenchmarkConfig, run_grasp_benchmark
+from don_gym.evaluation import TrackingConfig, evaluate_tracking, write_tracking_outputs
+from don_gym.grasp_benchmark import GraspBenchmarkConfig, run_grasp_benchmark, write_grasp_outputs
 from don_gym.io import check_output_dir, check_output_file
 from don_gym.model import DenseObjectNet
 from don_gym.objects import load_object
@@ -256,6 +256,13 @@ API_CASES: dict[str, Api] = {
     "embed tolerance NaN": Api(lambda ws: embed(load_object(TOOLCAP), tolerance=math.nan), "tolerance=nan"),
     "embed unknown method": Api(lambda ws: embed(load_object(TOOLCAP), method="fast"), "method='fast'"),
     "embed unknown components": Api(lambda ws: embed(load_object(TOOLCAP), components="all"), "components='all'"),
+    "embed dim negative": Api(lambda ws: embed(load_object(TOOLCAP), -2), "dim=-2"),
+    "embed tolerance a string": Api(lambda ws: embed(load_object(TOOLCAP), tolerance="a"), "tolerance='a'"),
+    "embed tolerance None": Api(lambda ws: embed(load_object(TOOLCAP), tolerance=None), "tolerance=None"),
+    "embed symmetric a string": Api(lambda ws: embed(load_object(TOOLCAP), symmetric="yes"), "symmetric='yes'"),
+    "embed method a number": Api(lambda ws: embed(load_object(TOOLCAP), method=3), "method=3"),
+    "embed components None": Api(lambda ws: embed(load_object(TOOLCAP), components=None), "components=None"),
+    "embed a name instead of a mesh": Api(lambda ws: embed(TOOLCAP), "got str"),
     # networks
     "load_don missing": Api(lambda ws: load_don(ws.tmp / "net.safetensors"), "net.safetensors"),
     "load_don unreadable": Api(lambda ws: load_don(ws.file), "file.txt"),
@@ -285,10 +292,15 @@ API_CASES: dict[str, Api] = {
     "grasp workers 0": Api(lambda ws: run_grasp_benchmark(GraspBenchmarkConfig(), workers=0), "workers=0"),
     # datasets and outputs
     "dataset missing": Api(lambda ws: DONDataset(ws.tmp / "missing"), "missing"),
-    "dataset a file": Api(lambda ws: DONDataset(ws.file), "file.txt"),
+    "dataset a file": Api(lambda ws: DONDataset(ws.file), "file.txt: is a file, not a dataset directory"),
     "output dir is a file": Api(lambda ws: check_output_dir(ws.file), "file.txt"),
     "output file is a directory": Api(lambda ws: check_output_file(ws.folder), "is a directory"),
     "output file is a device": Api(lambda ws: check_output_file("/dev/null"), "not a regular file"),
+    # The outputs are checked before the results are looked at: no result is needed to show it.
+    "tracking outputs into a file": Api(
+        lambda ws: write_tracking_outputs(None, ws.file), "file.txt: exists and is not a directory"
+    ),
+    "grasp outputs under a file": Api(lambda ws: write_grasp_outputs(None, ws.file / "bench"), "file.txt is a file"),
 }
 
 #: The number of bad inputs checked here; docs/reliability.md cites it.
@@ -410,6 +422,14 @@ def test_api_refuses_a_bad_input_with_a_dongymerror(name: str, workspace) -> Non
     case = API_CASES[name]
     with pytest.raises(DonGymError, match=re.escape(case.says)):
         case.call(workspace)
+
+
+def test_a_damaged_train_state_is_a_short_line_that_says_what_to_do(workspace, capsys) -> None:
+    code, _, err = run_cli(workspace.fill((*TRAIN, "--out", "{corrupt_run}", "--steps", "2", "--resume")), capsys)
+    line = one_error_line(code, err)
+    assert "train_state.pt: cannot be read, the file is damaged" in line and "corrupt_run" in line, line
+    assert "delete it" in line and "new --out" in line, line
+    assert "weights_only" not in line and len(line) < 400, line  # PyTorch's paragraph about it is left out
 
 
 @pytest.fixture(scope="module")

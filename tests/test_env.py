@@ -20,7 +20,8 @@ from don_gym.errors import DonGymError, MeshError
 from don_gym.geometry import invert_transform, project_points, transform_points
 from don_gym.sim.camera import body_mask, render_camera
 from don_gym.sim.env import PickPlaceEnv
-from don_gym.sim.task import FIXED_POSES, TABLE_TOP_Z_M
+from don_gym.sim.part import radius_profile
+from don_gym.sim.task import FIXED_POSES, TABLE_TOP_Z_M, grasp_axial_position_m
 
 TINY = (32, 24)
 
@@ -87,6 +88,28 @@ def test_shaft_oracle_on_a_few_poses():
             info = _run(env, k)
             assert info["outcome"] == "grasp_and_place", (k, info["outcome"])
         assert _run(env, 3, flip=True)["outcome"] == "grasp_only"
+    finally:
+        env.close()
+
+
+def test_shaft_grasp_keeps_the_pads_off_the_collar_steps_and_places_the_centre_of_mass():
+    # A pad end on the collar's step hooks the part, which then follows one finger out of the
+    # cradle when the gripper opens; the grasp point leaves room for millimetres of perception error.
+    env = gym.make("DONShaftPick-v0", image_size=None, sensor="ideal").unwrapped
+    try:
+        model = env.model
+        axis = np.asarray(model.plus_axis, dtype=np.float64)
+        centred = model.mesh.copy()
+        centred.apply_translation(-model.center_of_mass)
+        profile = radius_profile(centred, axis)
+        grasp = grasp_axial_position_m(model)
+        under_pads = profile[np.abs(profile[:, 0] - grasp) <= 0.011 + 0.007]
+        assert len(under_pads) > 2 and np.ptp(under_pads[:, 1]) < 1e-5, under_pads
+        # The script offsets the hand by the grasp point's axial position: the centre of mass, not
+        # the grasp point (18 mm from it), ends over the groove's centre.
+        info = _run(env, 5)
+        assert info["outcome"] == "grasp_and_place"
+        assert info["placement_distance_m"] < 0.004, info["placement_distance_m"]
     finally:
         env.close()
 

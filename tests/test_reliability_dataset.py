@@ -6,6 +6,7 @@ concurrent writers (processes), kill -9 mid-build. Tiny sizes keep each test to 
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import hashlib
 import json
@@ -25,6 +26,7 @@ import trimesh
 from don_gym.build import DatasetConfig, build_dataset
 from don_gym.cli import main
 from don_gym.dataset import DatasetLock, DONDataset
+from don_gym.descriptors import DescriptorField
 from don_gym.errors import DatasetError
 from don_gym.export import export_scene_pdc
 
@@ -358,3 +360,91 @@ def test_publishing_is_first_writer_wins_without_locks(tmp_path: Path) -> None:
     assert [published for _, published in copies] == [True, False]
     assert (final / "scene.json").read_text() == "a"
     assert sorted(p.name for p in final.parent.iterdir()) == ["scene_000000"]
+
+
+def _field_as_from_another_machine(path: Path, delta: float) -> str:
+    """Rewrite the field file at ``path`` with every vertex descriptor moved by ``delta`` (towards the middle
+    of [0, 1], so that it stays a valid field) and another mesh hash, as another machine's arithmetic could
+    give (by ~1e-7); returns the new file's content hash."""
+    field = DescriptorField.load(path)
+    values = field.vertex_descriptors.astype(np.float64)
+    moved = (values + np.where(values < 0.5, delta, -delta)).astype(np.float32)
+    field = dataclasses.replace(field, vertex_descriptors=moved, mesh_hash="f" * 16)
+    field.save(path)
+    return field.field_hash
+
+
+def test_a_dataset_from_another_machine_resumes_and_another_field_is_refused(
+    dataset: Path, reference: Path, tmp_path: Path, capsys
+) -> None:
+    """The part is compared by shape signature and the descriptor field by value (FIELD_MATCH_ATOL = 1e-3),
+    never by hashes of float bits: shards built on machines whose arithmetic differs share one dataset."""
+    info_path, field_path = dataset / "dataset.json", dataset / "descriptor_field.npz"
+    info = json.loads(info_path.read_text())
+    info["descriptor_field_hash"] = _field_as_from_another_machine(field_path, 1e-6)
+    info["mesh_hash"] = "f" * 16
+    info["object_signature"]["area_m2"] *= 1 + 1e-7
+    info_path.write_text(json.dumps(info))
+    more = DatasetConfig(**{**TINY.__dict__, "scenes": 3})
+    report = build_dataset(more, dataset, progress=False)
+    assert (report.scenes_written, report.scenes_complete) == (1, 3)
+    resumed = json.loads(info_path.read_text())
+    assert resumed == {**info, "scenes": 3}  # the recorded part and field stay the dataset's
+    assert DONDataset(dataset).descriptor_field().field_hash == info["descriptor_field_hash"]
+
+    info["descriptor_field_hash"] = _field_as_from_another_machine(field_path, 1e-2)
+    info_path.write_text(json.dumps({**info, "scenes": 3}))
+    before = _snapshot(dataset)
+    code = main(["build-dataset", *TINY_ARGS, "--scenes", "4", "--out", str(dataset)])
+    _assert_one_line_error(code, capsys.readouterr().err, "descriptor field", "by 0.01", "tolerance 0.001")
+    assert _snapshot(dataset) == before
+
+    # A field file published by another machine's build that has not written dataset.json yet is joined.
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    shutil.copyfile(reference / "descriptor_field.npz", fresh / "descriptor_field.npz")
+    published = _field_as_from_another_machine(fresh / "descriptor_field.npz", 1e-6)
+    assert build_dataset(DatasetConfig(**{**TINY.__dict__, "scenes": 1}), fresh, progress=False).scenes_written == 1
+    assert json.loads((fresh / "dataset.json").read_text())["descriptor_field_hash"] == published
+
+
+def test_a_replaced_field_file_is_refused(dataset: Path) -> None:
+    """dataset.json names its field file's exact content: the scenes' targets were rendered from it."""
+    from don_gym.descriptors import embed
+    from don_gym.objects import load_object
+
+    embed(load_object("toolcap"), dim=3, symmetric=True, tolerance=0.02).save(dataset / "descriptor_field.npz")
+    with pytest.raises(DatasetError, match="the file was replaced or deleted"):
+        build_dataset(TINY, dataset, progress=False)
+
+
+def test_a_part_in_pieces_is_refused_with_advice_for_build_dataset(tmp_path: Path, two_piece_mesh: Path, capsys):
+    code = main(["build-dataset", *TINY_ARGS, "--object", str(two_piece_mesh), "--out", str(tmp_path / "ds")])
+    line = _assert_one_line_error(code, capsys.readouterr().err, "2 connected components", "one piece")
+    assert "--components" not in line and "components=" not in line, line  # options build-dataset does not have
+
+
+def test_ctrl_c_during_a_build_on_workers_prints_no_traceback(tmp_path: Path) -> None:
+    """The terminal sends SIGINT to the command and its worker processes alike: one line, status 130, no
+    worker traceback, nothing half-written, and the same build then completes the dataset."""
+    out = tmp_path / "ds"
+    process = subprocess.Popen(
+        _cli_command(*TINY_ARGS, "--scenes", "6", "--workers", "2", "--out", str(out)),
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        env=dict(os.environ, OMP_NUM_THREADS="1"),
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 240
+        while not list((out / "scenes").glob(".scene_*.partial-*")) and process.poll() is None:
+            assert time.monotonic() < deadline, "the build never started a scene"
+            time.sleep(0.01)
+        os.killpg(process.pid, signal.SIGINT)
+        _, stderr = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    assert process.returncode == 130, stderr
+    assert "Traceback" not in stderr and stderr.rstrip().endswith("don-gym build-dataset: interrupted"), stderr
+    assert not _leftovers(out)
+    report = build_dataset(DatasetConfig(**{**TINY.__dict__, "scenes": 6}), out, progress=False)
+    assert report.scenes_complete == 6 and report.scenes_written < 6 and not _leftovers(out)

@@ -141,6 +141,12 @@ def test_simulated_keypoints_match_the_oracle_pipeline_and_apply_a_noise_model(t
     np.testing.assert_allclose(obs["keypoint_confidence"], 0.7)
     noisy.close()
 
+    # From a tracking evaluation's per-match errors: magnitudes kept, matches without depth become misses.
+    tracked = KeypointNoiseModel.from_tracking(np.array([0.002, 0.05, 0.01]), np.array([True, True, False]), toolcap)
+    magnitudes = np.linalg.norm(tracked.error_camera_m[tracked.rows_of(0)], axis=1)
+    np.testing.assert_allclose(magnitudes[:2], [0.002, 0.05])
+    assert np.isnan(magnitudes[2]) and tracked.confidence[tracked.rows_of(1)].tolist() == [1.0, 1.0, 0.0]
+
     shaft = load_object("shaft")
     other = KeypointNoiseModel(rows, noise.error_camera_m, noise.confidence, 0.0, shaft.name, shaft.mesh_hash)
     with pytest.raises(DonGymError, match=r"noise=.*measured on object 'shaft'.*'toolcap'"):
@@ -261,17 +267,23 @@ class _GraspEnv(gym.Env):
 
 def test_axis_action_frame_is_residual_about_the_keypoints() -> None:
     points = np.array([[0.5, 0.0, 0.02], [0.5, 0.02, 0.02]], np.float32)  # axis along world +y
-    env = KeypointGraspAction(_GraspEnv(points, np.ones(2, np.float32)), frame="axis")
+    env = KeypointGraspAction(_GraspEnv(points, np.ones(2, np.float32)), frame="axis", axis_depth_m=0.005)
     assert env.action_space.shape == (4,)
     env.reset()
-    np.testing.assert_allclose(env.grasp_action(np.zeros(4)), [0.5, 0.01, 0.02, np.pi / 2], atol=1e-6)
+    np.testing.assert_allclose(env.grasp_action(np.zeros(4)), [0.5, 0.01, 0.015, np.pi / 2], atol=1e-6)
     moved = env.grasp_action(np.array([1.0, 1.0, -1.0, 1.0]))
-    np.testing.assert_allclose(moved[:3], [0.5 - AXIS_OFFSET_M, 0.01 + AXIS_OFFSET_M, 0.02 - AXIS_OFFSET_M], atol=1e-6)
+    expected = [0.5 - AXIS_OFFSET_M, 0.01 + AXIS_OFFSET_M, 0.015 - AXIS_OFFSET_M]
+    np.testing.assert_allclose(moved[:3], expected, atol=1e-6)
     assert moved[3] == pytest.approx(np.pi / 2 + AXIS_YAW_RAD)
     # One keypoint not found: the frame falls back to the centroid of the found one, yaw 0.
-    lost = KeypointGraspAction(_GraspEnv(points, np.array([1.0, 0.0], np.float32)), frame="axis")
+    lost = KeypointGraspAction(_GraspEnv(points, np.array([1.0, 0.0], np.float32)), frame="axis", axis_depth_m=0.005)
     lost.reset()
     np.testing.assert_allclose(lost.grasp_action(np.zeros(4)), [0.5, 0.0, 0.02, 0.0], atol=1e-6)
+    # By default the origin is lowered by the part's ring radius: from the surface to the axis.
+    part = SimulatedKeypoints(gym.make("DONToolcapPick-v0", control="grasp", image_size=None))
+    radii = axis_end_targets(part.object_model).radii_m
+    assert KeypointGraspAction(part, frame="axis").axis_depth_m == pytest.approx(float(np.mean(radii)))
+    part.close()
 
 
 # ------------------------------------------------------------------------------------ bad input

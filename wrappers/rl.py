@@ -13,6 +13,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from don_gym.descriptor_sources import axis_end_targets, env_object_model
 from don_gym.errors import DonGymError
 from don_gym.sim.task import TABLE_TOP_Z_M, WORKSPACE_M
 
@@ -127,12 +128,14 @@ class KeypointGraspAction(gym.Wrapper):
     """Grasp-mode actions in [-1, 1]^n for a policy, in a frame set by the reset observation's keypoints.
 
     ``frame="axis"`` (n = 4: along, across, z, turn): residuals about the keypoints' own grasp. The
-    grasp point is the midpoint of the two keypoints plus ``along`` and ``across`` times
-    :data:`AXIS_OFFSET_M` along and across their horizontal axis direction and ``z`` times
-    :data:`AXIS_OFFSET_M` up; the yaw is that of the keypoint axis (minus to plus end) plus ``turn``
-    times :data:`AXIS_YAW_RAD`. Action 0 is a sound grasp, so a policy starts from one and learns
-    the corrections; without two found keypoints the frame is the keypoint centroid (or the
-    workspace centre at table height) with yaw 0.
+    frame's origin is the midpoint of the two keypoints lowered by ``axis_depth_m`` (the keypoints lie
+    on the part's surface facing the camera, which looks down, about one ring radius above the axis
+    the grasp aims at; None: the mean radius of the env's part's axis-end rings); the grasp point is
+    the origin plus ``along`` and ``across`` times :data:`AXIS_OFFSET_M` along and across the
+    keypoints' horizontal axis direction and ``z`` times :data:`AXIS_OFFSET_M` up; the yaw is that of
+    the keypoint axis (minus to plus end) plus ``turn`` times :data:`AXIS_YAW_RAD`. Action 0 is a
+    sound grasp, so a policy starts from one and learns the corrections; without two found keypoints
+    the frame is the keypoint centroid (or the workspace centre at table height) with yaw 0.
 
     ``frame="keypoints"`` (n = 5: x, y, z, cos yaw, sin yaw): the grasp point is the keypoint centroid
     plus (x, y) * :data:`GRASP_OFFSET_XY_M` and z * :data:`GRASP_OFFSET_Z_M`; a frame without keypoints
@@ -144,13 +147,16 @@ class KeypointGraspAction(gym.Wrapper):
     (put it below :class:`KeypointFeatures`).
     """
 
-    def __init__(self, env: gym.Env, frame: str = "keypoints"):
+    def __init__(self, env: gym.Env, frame: str = "keypoints", axis_depth_m: float | None = None):
         super().__init__(env)
         if frame not in ACTION_FRAMES:
             raise DonGymError(f"action_frame={frame!r} is unknown; expected one of {list(ACTION_FRAMES)}")
         if getattr(env.unwrapped, "control", None) != "grasp":
             raise DonGymError("KeypointGraspAction needs an env with control='grasp'")
         self.frame = frame
+        if frame == "axis" and axis_depth_m is None:
+            axis_depth_m = float(np.mean(axis_end_targets(env_object_model(env)).radii_m))
+        self.axis_depth_m = float(axis_depth_m or 0.0)
         self.action_space = spaces.Box(-1.0, 1.0, shape=(4 if frame == "axis" else 5,), dtype=np.float32)
         self._centroid = WORKSPACE_CENTRE_M.copy()
         self._axis_origin = WORKSPACE_CENTRE_M.copy()
@@ -167,7 +173,7 @@ class KeypointGraspAction(gym.Wrapper):
         if len(points) >= 2 and found[:2].all():
             direction = points[1] - points[0]
             if np.hypot(direction[0], direction[1]) > 1e-6:
-                self._axis_origin = 0.5 * (points[0] + points[1])
+                self._axis_origin = 0.5 * (points[0] + points[1]) - np.array([0.0, 0.0, self.axis_depth_m])
                 self._axis_yaw = float(np.arctan2(direction[1], direction[0]))
         return observation, info
 

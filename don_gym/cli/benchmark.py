@@ -99,6 +99,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     grasp.add_argument("--renderer", default="tiny", help="PyBullet renderer: tiny (default) or egl")
     grasp.add_argument("--seed", type=int, default=0, help="benchmark seed (default: 0)")
     grasp.add_argument("--workers", type=int, default=2, help="worker processes (default: 2)")
+    grasp.add_argument("--device", default="cpu", help="device of the networks: cpu (default), cuda, cuda:N or auto")
     grasp.add_argument("--out", metavar="DIR", default=None, help="write JSON, Markdown and charts here")
     grasp.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(run=run)
@@ -128,11 +129,13 @@ def run(args: argparse.Namespace) -> int:
         write_grasp_outputs,
     )
     from don_gym.io import check_output_dir
+    from don_gym.model import torch_device
     from don_gym.objects import load_object
     from don_gym.sim.task import FIXED_POSES
 
     if args.workers < 1:
         raise DonGymError(f"--workers {args.workers}: expected at least 1")
+    torch_device(args.device)  # a bad or absent device is refused before the work
     if args.out is not None:
         check_output_dir(args.out, "--out")
     torch.set_num_threads(1)
@@ -152,7 +155,7 @@ def run(args: argparse.Namespace) -> int:
         renderer=args.renderer,
         seed=args.seed,
     )
-    result = run_grasp_benchmark(config, workers=args.workers, progress=not args.no_progress)
+    result = run_grasp_benchmark(config, workers=args.workers, progress=not args.no_progress, device=args.device)
     print(outcome_table(result))
     if len(config.sensors) > 1:
         print()

@@ -95,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
     import time
 
     from don_gym.descriptors import DEFAULT_TOLERANCE, embed
+    from don_gym.errors import MeshError, SeveralPiecesError
     from don_gym.io import check_output_file
     from don_gym.objects import load_object
     from don_gym.plotting import DEFAULT_VIEWS, PLOT_SUFFIXES, plot_descriptor_field
@@ -108,7 +109,12 @@ def run(args: argparse.Namespace) -> int:
     obj = load_object(args.mesh, scale=args.scale)
     tolerance = DEFAULT_TOLERANCE if args.tolerance is None else args.tolerance
     start = time.perf_counter()
-    field = embed(obj, args.dim, args.symmetric, tolerance=tolerance, components=args.components, method=args.method)
+    try:
+        field = embed(
+            obj, args.dim, args.symmetric, tolerance=tolerance, components=args.components, method=args.method
+        )
+    except SeveralPiecesError as exc:
+        raise MeshError(f"{args.mesh}: {exc.detail}; pass --components largest to embed the largest one only") from exc
     seconds = time.perf_counter() - start
 
     mesh = obj.mesh

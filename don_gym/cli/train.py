@@ -27,7 +27,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", required=True, help="run directory")
     parser.add_argument("--steps", type=int, default=2000, help="optimisation steps")
     parser.add_argument("--arch", default="resnet-lite", help="network: resnet-lite (CPU default), resnet18, resnet34")
-    parser.add_argument("--batch-size", type=int, default=4, help="images (supervised) or image pairs per step")
+    parser.add_argument(
+        "--batch-size",
+        type=int,
+        default=4,
+        help="images (supervised) or image pairs per step, over all processes under torchrun",
+    )
     parser.add_argument(
         "--lr", type=float, default=None, help="Adam learning rate (default: 1e-3 resnet-lite, 1e-4 else)"
     )

@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 from don_gym.descriptors.eigensolver import _eigenpairs
 from don_gym.descriptors.field import DescriptorField, _as_mesh
 from don_gym.descriptors.laplacian import _components, normalize_to_unit_area
-from don_gym.errors import DonGymError, MeshError
+from don_gym.errors import DonGymError, MeshError, SeveralPiecesError
 from don_gym.objects import ObjectModel
 
 #: Default relative tolerance under which consecutive eigenvalues count as equal (one symmetry group).
@@ -182,12 +182,14 @@ class _NearestByScan:
 
 
 class _Nearest:
-    """Nearest-neighbour distances of ``points`` by a k-d tree or by :class:`_NearestByScan`, whichever
-    has been faster so far (each is tried first): they give the same distances, so the result does
-    not depend on the choice, only the time (a tree wins on spread-out points, a scan around shells)."""
+    """Nearest-neighbour distances of ``points`` by :class:`_NearestByScan` or a k-d tree (built on
+    first use), whichever has been faster so far (each is tried once first): they give the same
+    distances, so the result does not depend on the choice, only the time (a tree wins on spread-out
+    points, a scan around shells)."""
 
     def __init__(self, points: np.ndarray, tree: cKDTree | None = None):
-        self._methods = [tree if tree is not None else cKDTree(points, balanced_tree=False), _NearestByScan(points)]
+        self._points = points
+        self._methods: list = [_NearestByScan(points), tree]
         self._seconds = [0.0, 0.0]
         self._calls = [0, 0]
 
@@ -197,6 +199,8 @@ class _Nearest:
         else:
             k = int(np.argmin([t / c for t, c in zip(self._seconds, self._calls, strict=True)]))
         start = time.perf_counter()
+        if self._methods[k] is None:
+            self._methods[k] = cKDTree(self._points, balanced_tree=False)
         distance = self._methods[k].query(x)[0]
         self._seconds[k] += time.perf_counter() - start
         self._calls[k] += 1
@@ -307,13 +311,17 @@ def embed(
         MeshError: empty mesh, NaN/infinite vertices, zero area, several pieces (with
             ``components="error"``), or too few vertices to give ``dim`` descriptor functions.
     """
+    # Every argument is checked before the mesh: a wrong type is a DonGymError naming it, not a TypeError.
     if isinstance(dim, bool) or not isinstance(dim, (int, np.integer)) or dim < 1:
         raise DonGymError(f"dim={dim!r}: expected an integer >= 1")
-    if not (np.isfinite(tolerance) and 0 <= tolerance < 1):
+    if not isinstance(symmetric, (bool, np.bool_)):
+        raise DonGymError(f"symmetric={symmetric!r}: expected True or False")
+    number = isinstance(tolerance, (int, float, np.integer, np.floating)) and not isinstance(tolerance, bool)
+    if not (number and math.isfinite(tolerance) and 0 <= tolerance < 1):
         raise DonGymError(f"tolerance={tolerance!r}: expected a relative tolerance in [0, 1)")
-    if components not in ("error", "largest"):
+    if not isinstance(components, str) or components not in ("error", "largest"):
         raise DonGymError(f"components={components!r}: expected 'error' or 'largest'")
-    if method not in ("auto", "direct", "multilevel"):
+    if not isinstance(method, str) or method not in ("auto", "direct", "multilevel"):
         raise DonGymError(f"method={method!r}: expected 'auto', 'direct' or 'multilevel'")
     vertices, faces, digest = _as_mesh(mesh)
     n_all = len(vertices)
@@ -330,15 +338,15 @@ def embed(
         largest = int(np.argmax(area_per_label))
         if components == "error":
             share = area_per_label[largest] / max(area_per_label.sum(), 1e-300)
-            raise MeshError(
+            raise SeveralPiecesError(
                 f"mesh has {len(piece_labels)} connected components (the largest has {share:.0%} of the area); "
-                "the Laplacian then has one zero eigenvalue per component and no single embedding. "
-                "Use the largest component only (embed(..., components='largest'), CLI --components largest)"
+                "the Laplacian then has one zero eigenvalue per component and no single embedding",
+                "Pass components='largest' to embed the largest component only"
                 + (
                     " or merge duplicate vertices first (load_object does)"
                     if len(piece_labels) > len(faces) / 4
                     else ""
-                )
+                ),
             )
         keep = label == largest
     else:

@@ -41,7 +41,7 @@ FINGER_CLEARANCE_M = 0.004
 #: The release counts as stalled when the fingers stop this far (m) short of fully open while still
 #: touching the part; the script then squeezes and opens again, at most RELEASE_RETRIES times.
 RELEASE_STALL_M = 0.005
-RELEASE_RETRIES = 2
+RELEASE_RETRIES = 3
 #: Margin (rad) kept from joint 7's limits when choosing wrist angles.
 WRIST_MARGIN_RAD = 0.08
 
