@@ -1,7 +1,8 @@
-"""Shared helper for benchmark scripts: record a result section in benchmarks/RESULTS.md.
+"""Shared helpers for benchmark scripts: record a result section in benchmarks/RESULTS.md, and
+replace a generated block of another document (README.md, docs/) with figures a benchmark computed.
 
-Each benchmark owns one section, delimited by HTML comments, which it replaces on every run.
-The section header records the exact command, the machine, the date and the commit, so every
+Each benchmark owns its sections and blocks, delimited by HTML comments, which it replaces on every run.
+A section header records the exact command, the machine, the date and the commit, so every
 figure in RESULTS.md can be traced to the run and the code that produced it.
 """
 
@@ -78,9 +79,17 @@ def commit_description() -> str:
     return f"{commit} + uncommitted changes" if changed else (commit or "unknown")
 
 
-def record_section(name: str, title: str, body_markdown: str, path: Path = RESULTS_PATH) -> str:
-    """Replace (or append) the section ``name`` of RESULTS.md; returns the section text."""
-    date = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+def utc_now() -> str:
+    """The date and time a measurement is recorded with, e.g. ``2026-11-29 22:09 UTC``."""
+    return _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+
+
+def record_section(
+    name: str, title: str, body_markdown: str, path: Path = RESULTS_PATH, after: str | None = None
+) -> str:
+    """Replace the section ``name`` of RESULTS.md, or add it after the section ``after`` (at the end when
+    that is None or absent); returns the section text."""
+    date = utc_now()
     section = (
         f"<!-- begin {name} -->\n## {title}\n\n"
         f"- Command: `{command_line()}`\n- Machine: {machine_description()}\n- Date: {date}\n"
@@ -93,8 +102,53 @@ def record_section(name: str, title: str, body_markdown: str, path: Path = RESUL
         else "# Benchmark results\n\nEvery figure below was written by the script named in its section.\n\n"
     )
     pattern = re.compile(rf"<!-- begin {re.escape(name)} -->.*?<!-- end {re.escape(name)} -->\n?", re.S)
-    text = pattern.sub(lambda _: section, text) if pattern.search(text) else text.rstrip("\n") + "\n\n" + section
+    end_of_after = f"<!-- end {after} -->\n" if after else None
+    if pattern.search(text):
+        text = pattern.sub(lambda _: section, text)
+    elif end_of_after and end_of_after in text:
+        head, tail = text.split(end_of_after, 1)
+        text = head + end_of_after + "\n" + section + ("\n" + tail.lstrip("\n") if tail.strip() else "")
+    else:
+        text = text.rstrip("\n") + "\n\n" + section
     tmp = path.with_suffix(".md.partial")
     tmp.write_text(text)
     os.replace(tmp, path)
     return section
+
+
+class BlockMarkersError(ValueError):
+    """A document lacks the begin/end comments of a generated block, or has them more than once."""
+
+
+def _block_span(text: str, name: str, path: Path) -> tuple[int, int]:
+    """Start and end offsets of the content between ``<!-- begin NAME -->`` and ``<!-- end NAME -->``."""
+    begin, end = f"<!-- begin {name} -->", f"<!-- end {name} -->"
+    counts = (text.count(begin), text.count(end))
+    if counts != (1, 1) or text.index(begin) > text.index(end):
+        raise BlockMarkersError(
+            f"{path}: expected the lines '{begin}' and, after it, '{end}' once each (found {counts[0]} and "
+            f"{counts[1]}); add them where the generated block belongs"
+        )
+    return text.index(begin) + len(begin), text.index(end)
+
+
+def require_blocks(path: Path, names: list[str]) -> None:
+    """Raise :class:`BlockMarkersError` unless ``path`` has the markers of every block in ``names`` (a
+    benchmark checks this before it runs, not after an hour of work)."""
+    text = Path(path).read_text()
+    for name in names:
+        _block_span(text, name, Path(path))
+
+
+def replace_block(path: Path, name: str, text: str) -> None:
+    """Replace the content between ``<!-- begin NAME -->`` and ``<!-- end NAME -->`` in ``path`` with
+    ``text`` (the markers stay, so the next run replaces it again); atomic: readers see the old or the new
+    file, never a mix. :class:`BlockMarkersError` when the markers are missing or repeated."""
+    from don_gym.io import write_text_atomic
+
+    path = Path(path)
+    document = path.read_text()
+    start, end = _block_span(document, name, path)
+    updated = document[:start] + "\n" + text.strip("\n") + "\n" + document[end:]
+    if updated != document:
+        write_text_atomic(path, updated)

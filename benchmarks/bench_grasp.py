@@ -1,35 +1,50 @@
-"""Tracking accuracy and grasp-and-place outcomes of the shipped DONs against the oracle.
+"""Tracking accuracy and grasp-and-place outcomes of the shipped DONs against the oracle, for the toolcap and the shaft.
 
 Tracking (RESULTS.md section "tracking") on held-out datasets of each object, with the paper's tracking
-figure for all objects in one picture; grasp-and-place (section "grasp") on the toolcap's 8 fixed poses over
-a depth-sensor sweep, with the issue's targets checked, and on seeded random poses.
-Figures go to ``benchmarks/figures/``; datasets and raw outputs to ``--work``.
+figure for all objects in one picture; grasp-and-place (sections "grasp", the toolcap, the headline, and
+"grasp-shaft") on each object's 8 fixed poses over a depth-sensor sweep, with the issue's targets checked,
+and on seeded random poses. From the same results it writes the generated blocks of README.md (sections
+"Tracking error" and "Grasp benchmark") and docs/reproduction.md (the paper's claims, each with a computed
+verdict). Figures go to ``benchmarks/figures/``; datasets and raw outputs to ``--work``.
 
-    python benchmarks/bench_grasp.py            # full run, records RESULTS.md
-    python benchmarks/bench_grasp.py --quick    # smoke run into a temp dir, records nothing
+    python benchmarks/bench_grasp.py            # full run, records RESULTS.md, README.md, docs/reproduction.md
+    python benchmarks/bench_grasp.py --quick    # smoke run into a temp dir, prints the blocks, records nothing
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import shutil
 import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _results import record_section  # noqa: E402
+from _results import (  # noqa: E402
+    REPO_ROOT,
+    command_line,
+    commit_description,
+    machine_description,
+    record_section,
+    replace_block,
+    require_blocks,
+    utc_now,
+)
 
 from don_gym import plotting  # noqa: E402
 from don_gym.build import DatasetConfig, build_dataset  # noqa: E402
 from don_gym.evaluation import TrackingConfig, evaluate_tracking, tracking_table, write_tracking_outputs  # noqa: E402
 from don_gym.grasp_benchmark import (  # noqa: E402
     GraspBenchmarkConfig,
+    GraspBenchmarkResult,
     check_targets,
     default_methods,
     outcome_table,
@@ -39,17 +54,96 @@ from don_gym.grasp_benchmark import (  # noqa: E402
     write_grasp_outputs,
 )
 from don_gym.objects import load_object  # noqa: E402
-from don_gym.zoo import read_don_metadata, shipped_names, shipped_names_for  # noqa: E402
+from don_gym.stats import format_rate  # noqa: E402
+from don_gym.zoo import read_don_metadata, shipped_names_for  # noqa: E402
 
 FIGURES = Path(__file__).resolve().parent / "figures"
+README_PATH = REPO_ROOT / "README.md"
+REPRODUCTION_PATH = REPO_ROOT / "docs" / "reproduction.md"
 EVAL_SEED = 1000
 OBJECTS = ("toolcap", "shaft")
-#: Depth of the predicted points in the combined tracking figure: the paper's camera is a D435.
+#: The object of the paper's robot experiment: its grasp section and README table come first.
+HEADLINE_OBJECT = "toolcap"
+#: Depth of the predicted points in the combined tracking figure, the README tables and the claims: the
+#: paper's camera is a D435.
 FIGURE_DEPTH = "sensor"
+GRASP_SENSORS = ("ideal", "d435@0.5", "d435")
+SUPERVISED = ("supervised-edge", "supervised-mask")
+SELF_SUPERVISED = "self-supervised"
+#: A method's 3D error has a long tail when its 99th percentile is at least this many times its median.
+LONG_TAIL_RATIO = 10.0
+#: "Slightly less accurate": a supervised network's median error at most this many times the self-supervised one's.
+SLIGHTLY_LESS_ACCURATE = 2.0
+#: The paper's robot result for the supervised networks, per 8 poses: all grasped, at least 7 grasped and placed.
+TARGET_GRASPED_PER_8, TARGET_PLACED_PER_8 = 8, 7
 
 
-def tracking(args: argparse.Namespace, work: Path) -> str:
-    """The "tracking" section: per object, a held-out dataset (seed :data:`EVAL_SEED`; the shipped networks
+def block(name: str) -> str:
+    """Name of a generated block owned by this script (``<!-- begin bench_grasp:NAME -->``)."""
+    return f"bench_grasp:{name}"
+
+
+def blocks_of(part: str, objects: list[str]) -> list[str]:
+    """The blocks the part (``tracking`` or ``grasp``) writes for ``objects``: README's per object; the claims
+    of docs/reproduction.md (a) to (c) from the tracking of every object, (d) and (e) from the toolcap's
+    grasp, (f) from the shaft's."""
+    names = [block(f"{part}-{o}") for o in objects]
+    if part == "tracking":
+        return names + ([block(f"claim-{c}") for c in "abc"] if set(OBJECTS) <= set(objects) else [])
+    names += [block(f"claim-{c}") for c in "de"] if HEADLINE_OBJECT in objects else []
+    return names + ([block("claim-f")] if "shaft" in objects else [])
+
+
+def object_networks(object_name: str) -> list[str]:
+    """The shipped networks of the object, in the paper's order (supervised-edge, supervised-mask, self-supervised)."""
+    shipped = set(shipped_names_for(load_object(object_name)))
+    return [m for m in default_methods(object_name) if m in shipped]
+
+
+def preflight(args: argparse.Namespace) -> None:
+    """Refuse before any work what would fail or mislead after it: missing networks, networks of one object
+    trained at different image sizes (a DON is not scale invariant and every method of an object runs at one
+    wrist-camera size), missing block markers in README.md and docs/reproduction.md."""
+    problems = []
+    for object_name in args.objects:
+        networks = object_networks(object_name)
+        missing = [m for m in default_methods(object_name)[1:] if m not in networks]
+        if missing and not args.quick:
+            problems.append(f"shipped networks missing: {missing}; run benchmarks/train_shipped.py first")
+        sizes = {n: tuple(read_don_metadata(n).image_size) for n in networks}
+        if len(set(sizes.values())) > 1:
+            listed = ", ".join(f"{n} {w}x{h}" for n, (w, h) in sizes.items())
+            problems.append(
+                f"{object_name}: the shipped networks were trained at different image sizes ({listed}); every "
+                f"method of an object is benchmarked at one wrist-camera size, so ship all of them from one "
+                f"`benchmarks/train_shipped.py --objects {object_name}` run first"
+            )
+    # --quick checks the markers too: it is the rehearsal of a full run.
+    parts = ("tracking", "grasp") if args.only is None else (args.only,)
+    names = [n for part in parts for n in blocks_of(part, args.objects)]
+    try:
+        require_blocks(README_PATH, [n for n in names if ":claim-" not in n])
+        require_blocks(REPRODUCTION_PATH, [n for n in names if ":claim-" in n])
+    except (ValueError, OSError) as exc:
+        problems.append(str(exc))
+    if problems:
+        sys.exit("bench_grasp.py: " + "\n".join(problems))
+
+
+def provenance(results_link: str, section: str) -> str:
+    """The line under every generated block: what made its figures, where, when, on which code."""
+    return (
+        f"*Measured by `{command_line()}`, {utc_now()}, {machine_description()}, commit {commit_description()}; "
+        f"full tables in [benchmarks/RESULTS.md]({results_link}), section `{section}`.*"
+    )
+
+
+# --- tracking -------------------------------------------------------------------------------------
+
+
+def tracking(args: argparse.Namespace, work: Path) -> tuple[str, dict[str, dict[str, Any]]]:
+    """The "tracking" section and ``{object: summary}`` (:meth:`TrackingResult.summary` with
+    :data:`FIGURE_DEPTH`): per object, a held-out dataset (seed :data:`EVAL_SEED`; the shipped networks
     were trained on seed 0) of ``--scenes`` x ``--frames`` at the image size the object's shipped networks were
     trained at, with the D435 sensor, then :func:`don_gym.evaluation.evaluate_tracking` for the oracle (optimal
     descriptors rendered from the true poses: the baseline every network is compared with) and every shipped
@@ -59,8 +153,9 @@ def tracking(args: argparse.Namespace, work: Path) -> str:
     parts = []
     sizes = []
     errors_by_object = {}
+    summaries = {}
     for object_name in args.objects:
-        networks = shipped_names_for(load_object(object_name))
+        networks = object_networks(object_name)
         image_size = training_image_size({n: read_don_metadata(n).image_size for n in networks})
         sizes.append(f"{object_name} {image_size[0]}x{image_size[1]}")
         config = DatasetConfig(
@@ -83,6 +178,7 @@ def tracking(args: argparse.Namespace, work: Path) -> str:
             )
             seconds = time.perf_counter() - start
             if depth == FIGURE_DEPTH:
+                summaries[object_name] = result.summary()
                 # Methods without the object's prefix, so that each keeps its name and colour in every panel.
                 errors_by_object[object_name] = {
                     name.removeprefix(f"{object_name}/"): matches.error_3d_m * 1000.0
@@ -131,59 +227,225 @@ def tracking(args: argparse.Namespace, work: Path) -> str:
         f"`benchmarks/figures/{figure.name}` (3D error with D435 depth; per method the histogram of its matches "
         "with depth, normalised to 1 and stacked, log-spaced bins)."
     )
-    return header + "\n\n" + "\n\n".join(parts)
+    return header + "\n\n" + "\n\n".join(parts), summaries
 
 
-def grasp(args: argparse.Namespace, work: Path) -> str:
-    """The "grasp" section: :func:`don_gym.grasp_benchmark.run_grasp_benchmark` on the toolcap (the paper's
-    robot experiment): oracle and the three shipped networks on the 8 fixed poses, ``--repeats`` seeds, sensors
-    ideal, d435@0.5 and d435 (the headline table is the D435's), and the issue's targets checked (oracle 8/8
-    grasp & place; supervised networks 8/8 grasped and at least 7/8 grasp & place, per 8 poses). Then the
-    README's ``don-gym benchmark grasp --quick`` runs as a separate process and is timed; its episodes must
-    equal the full run's matching ones.
+def _kind(info: dict[str, Any], name: str) -> str:
+    """The method kind (``oracle``, ``supervised-edge``, ...) of a method's recorded source info."""
+    return str(info.get("method", name.rsplit("/", 1)[-1]))
+
+
+def tracking_figures(summary: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """``{kind: figures}`` of one object's tracking summary: the medians, p99 and tail ratio of the 3D error,
+    the median of the 3D error modulo symmetry (the plain median for a part without an axis), fraction closer."""
+    out = {}
+    for name, m in summary["methods"].items():
+        plain, symmetric, closer = m["error_3d_mm"], m["error_3d_symmetric_mm"], m["fraction_closer"]
+        p50_sym = symmetric["p50"] if symmetric["p50"] is not None else plain["p50"]
+        ratio = plain["p99"] / plain["p50"] if plain["p50"] and plain["p99"] is not None else math.nan
+        out[_kind(m["source"], name)] = {
+            "name": name,
+            "p50_sym_mm": p50_sym,
+            "p50_mm": plain["p50"],
+            "p99_mm": plain["p99"],
+            "tail_ratio": ratio,
+            "matches": m["counts"]["matches_with_depth"],
+            "closer_pct": {k: None if v is None else 100.0 * v for k, v in closer.items()},
+        }
+    return out
+
+
+def _mm(value: float | None) -> str:
+    return "-" if value is None or not math.isfinite(value) else f"{value:.1f}"
+
+
+def _ratio(value: float) -> str:
+    return "-" if not math.isfinite(value) else f"{value:.1f}x"
+
+
+def _dataset_text(summary: dict[str, Any]) -> str:
+    width, height = summary["image_size"]
+    return (
+        f"{summary['scenes']} held-out scenes x {summary['frames_per_scene']} frames (seed {summary['dataset_seed']}, "
+        f"never trained on), {width}x{height}, predicted points from the D435's depth"
+    )
+
+
+def tracking_block(object_name: str, summary: dict[str, Any], source: str) -> str:
+    """README: the object's median 3D error modulo symmetry and 99th percentile of the plain 3D error per method."""
+    figures = tracking_figures(summary)
+    lines = [
+        f"**{object_name}**, {_dataset_text(summary)}:",
+        "",
+        "| method | 3D error mod symmetry, median (mm) | 3D error, 99th percentile (mm) | matches with depth |",
+        "|---|---:|---:|---:|",
+    ]
+    lines += [
+        f"| {f['name']} | {_mm(f['p50_sym_mm'])} | {_mm(f['p99_mm'])} | {f['matches']} |" for f in figures.values()
+    ]
+    return "\n".join(lines) + "\n\n" + source
+
+
+def _verdict(failed: list[str]) -> str:
+    return "**holds**" if not failed else "**differs**: " + "; ".join(failed)
+
+
+def _overall(per_object: dict[str, list[str]]) -> str:
+    holds = [o for o, failed in per_object.items() if not failed]
+    differs = [o for o, failed in per_object.items() if failed]
+    if not differs:
+        return f"Verdict: **holds** ({', '.join(holds)})."
+    if not holds:
+        return f"Verdict: **differs** ({', '.join(differs)})."
+    return f"Verdict: **holds** for {', '.join(holds)}, **differs** for {', '.join(differs)}."
+
+
+def _tracking_claim_table(by_object: dict[str, dict[str, dict[str, Any]]]) -> list[str]:
+    lines = [
+        "| object | method | 3D error mod symmetry, median (mm) | 3D error, median (mm) | 3D error, p99 (mm) "
+        "| p99 / median | long tail |",
+        "|---|---|---:|---:|---:|---:|---|",
+    ]
+    for object_name, figures in by_object.items():
+        for kind, f in figures.items():
+            tail = "yes" if f["tail_ratio"] >= LONG_TAIL_RATIO else ("no" if math.isfinite(f["tail_ratio"]) else "-")
+            lines.append(
+                f"| {object_name} | {kind} | {_mm(f['p50_sym_mm'])} | {_mm(f['p50_mm'])} | {_mm(f['p99_mm'])} "
+                f"| {_ratio(f['tail_ratio'])} | {tail} |"
+            )
+    return lines
+
+
+def tracking_claim_blocks(summaries: dict[str, dict[str, Any]], source: str) -> dict[str, str]:
+    """docs/reproduction.md, claims (a) to (c), from the tracking summaries of every object."""
+    by_object = {o: tracking_figures(s) for o, s in summaries.items()}
+    datasets = "; ".join(f"{o}: {_dataset_text(s)}" for o, s in summaries.items())
+    table = _tracking_claim_table(by_object)
+    blocks = {}
+
+    failed_a, failed_b, failed_c = {}, {}, {}
+    for object_name, f in by_object.items():
+        ssl = f.get(SELF_SUPERVISED)
+        supervised = {k: f[k] for k in SUPERVISED if k in f}
+        if ssl is None or not supervised:
+            missing = "no self-supervised network" if ssl is None else "no supervised network"
+            failed_a[object_name] = failed_b[object_name] = failed_c[object_name] = [f"{missing} evaluated"]
+            continue
+        a = []
+        best = min(supervised, key=lambda k: supervised[k]["p50_sym_mm"])
+        if not ssl["p50_sym_mm"] < supervised[best]["p50_sym_mm"]:
+            a.append(
+                f"{object_name}: self-supervised median {_mm(ssl['p50_sym_mm'])} mm is not below {best}'s "
+                f"{_mm(supervised[best]['p50_sym_mm'])} mm"
+            )
+        if not ssl["tail_ratio"] >= LONG_TAIL_RATIO:
+            a.append(f"{object_name}: self-supervised p99 / median {_ratio(ssl['tail_ratio'])} < {LONG_TAIL_RATIO:g}x")
+        failed_a[object_name] = a
+        b = []
+        for kind, s in supervised.items():
+            if not s["tail_ratio"] < LONG_TAIL_RATIO:
+                b.append(f"{object_name}: {kind} has a long tail (p99 / median {_ratio(s['tail_ratio'])})")
+            if not s["p50_sym_mm"] > ssl["p50_sym_mm"]:
+                b.append(
+                    f"{object_name}: {kind} is more accurate at the median than self-supervised "
+                    f"({_mm(s['p50_sym_mm'])} vs {_mm(ssl['p50_sym_mm'])} mm)"
+                )
+            elif not s["p50_sym_mm"] <= SLIGHTLY_LESS_ACCURATE * ssl["p50_sym_mm"]:
+                b.append(
+                    f"{object_name}: {kind}'s median {_mm(s['p50_sym_mm'])} mm is more than "
+                    f"{SLIGHTLY_LESS_ACCURATE:g}x self-supervised's {_mm(ssl['p50_sym_mm'])} mm"
+                )
+        failed_b[object_name] = b
+        c = []
+        for kind, s in supervised.items():
+            ssl_mean, mean = ssl["closer_pct"]["mean"], s["closer_pct"]["mean"]
+            if ssl_mean is None or mean is None or not ssl_mean > mean:
+                c.append(
+                    f"{object_name}: self-supervised's mean fraction closer {_pct(ssl_mean)} is not above "
+                    f"{kind}'s {_pct(mean)}"
+                )
+        failed_c[object_name] = c
+
+    def claim(criterion: str, failed: dict[str, list[str]], rows: list[str]) -> str:
+        per_object = "\n".join(f"- {o}: {_verdict(f)}" for o, f in failed.items())
+        return "\n".join(
+            [criterion, "", *rows, "", per_object, "", _overall(failed), "", f"Data: {datasets}.", "", source]
+        )
+
+    blocks[block("claim-a")] = claim(
+        f"Criterion: per object, the self-supervised network's median 3D error modulo symmetry is below both "
+        f"supervised networks' (more accurate at the median), and its 3D error's 99th percentile is at least "
+        f"{LONG_TAIL_RATIO:g} times its median (a long tail).",
+        failed_a,
+        table,
+    )
+    blocks[block("claim-b")] = claim(
+        f"Criterion: per object, each supervised network's 3D error has no long tail (99th percentile less than "
+        f"{LONG_TAIL_RATIO:g} times the median), and its median 3D error modulo symmetry is above the "
+        f"self-supervised network's (less accurate) by at most {SLIGHTLY_LESS_ACCURATE:g}x (slightly).",
+        failed_b,
+        table,
+    )
+    closer_rows = [
+        "| object | method | fraction closer, median (%) | 90th percentile (%) | mean (%) |",
+        "|---|---|---:|---:|---:|",
+    ]
+    for object_name, figures in by_object.items():
+        for kind, f in figures.items():
+            pct = f["closer_pct"]
+            closer_rows.append(
+                f"| {object_name} | {kind} | {_pct(pct['p50'])} | {_pct(pct['p90'])} | {_pct(pct['mean'])} |"
+            )
+    blocks[block("claim-c")] = claim(
+        "Criterion: per object, the self-supervised network's mean fraction closer (share of the image's pixels "
+        "whose descriptor is nearer the reference than the true match's) is above both supervised networks'.",
+        failed_c,
+        closer_rows,
+    )
+    return blocks
+
+
+def _pct(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3f}"
+
+
+# --- grasp ----------------------------------------------------------------------------------------
+
+
+def grasp(args: argparse.Namespace, work: Path, object_name: str) -> tuple[str, GraspBenchmarkResult]:
+    """The object's grasp section: :func:`don_gym.grasp_benchmark.run_grasp_benchmark` (``don-gym benchmark grasp
+    --object OBJECT``): oracle and the object's shipped networks on the 8 fixed poses, ``--repeats`` seeds,
+    sensors ideal, d435@0.5 and d435 (the headline table is the D435's), ``--random-poses`` random poses, and
+    the issue's targets checked (oracle 8/8 grasp & place; supervised networks 8/8 grasped and at least 7/8
+    grasp & place, per 8 poses). For the toolcap, the README's ``don-gym benchmark grasp --quick`` then runs as a
+    separate process and is timed; its episodes must equal the full run's matching ones.
     """
-    methods = tuple(m for m in default_methods("toolcap") if m == "oracle" or m in shipped_names())
+    methods = ("oracle", *object_networks(object_name))
     config = GraspBenchmarkConfig(
-        object="toolcap",
+        object=object_name,
         methods=methods,
         repeats=args.repeats,
-        sensors=("ideal", "d435@0.5", "d435"),
-        image_size=None,  # the networks' training size
+        sensors=GRASP_SENSORS,
+        image_size=None,  # the networks' training size (preflight made sure they agree)
         poses=(0, 1) if args.quick else tuple(range(8)),
         random_poses=args.random_poses,
     )
     result = run_grasp_benchmark(config, workers=args.workers)
-    paths = write_grasp_outputs(result, work / "grasp")
+    paths = write_grasp_outputs(result, work / f"grasp_{object_name}")
     figures = []
     if not args.quick:
         FIGURES.mkdir(exist_ok=True)
-        for key in ("outcomes", "sweep"):
-            target = FIGURES / f"grasp_{key}.png"
-            shutil.copyfile(paths[key], target)
-            figures.append(f"`benchmarks/figures/{target.name}`")
+        prefix = "grasp" if object_name == HEADLINE_OBJECT else f"grasp_{object_name}"
+        for key, path in paths.items():
+            if path.suffix == ".png":
+                target = FIGURES / f"{prefix}_{key}.png"
+                shutil.copyfile(path, target)
+                figures.append(f"`benchmarks/figures/{target.name}`")
     targets = check_targets(result)
     per_episode = sorted(e["seconds"] for e in result.episodes)
-
-    # The README's quick run, timed as a user runs it (a fresh process, imports included).
-    quick_out = work / "grasp_quick"
-    command = [sys.executable, "-m", "don_gym.cli", "benchmark", "grasp", "--quick", "--no-progress"]
-    command += ["--workers", str(args.workers), "--out", str(quick_out)]
-    if args.quick:
-        command += ["--poses", "0", "1"]
-    start = time.perf_counter()
-    subprocess.run(command, check=True)
-    quick_s = time.perf_counter() - start
-    quick = json.loads((quick_out / "grasp_episodes.json").read_text())["episodes"]
-    same = [{k: v for k, v in e.items() if k != "seconds"} for e in quick] == [
-        {k: v for k, v in e.items() if k != "seconds"}
-        for e in result.episodes
-        if e["sensor"] == "d435"
-        and e["repeat"] == 0
-        and e["random_pose"] is None
-        and e["method"] in {q["method"] for q in quick}
-    ]
+    width, height = result.config.image_size
     body = (
-        f'Toolcap, `control="grasp"`, {result.config.image_size[0]}x{result.config.image_size[1]} wrist camera '
+        f'{object_name.capitalize()}, `control="grasp"`, {width}x{height} wrist camera '
         "(the shipped networks' training size), "
         f"`AxisGraspAgent` per method, {len(config.poses)} fixed poses x {config.repeats} repeats (seeds vary "
         "sensor noise and hand-eye calibration error; every method and sensor sees the same seeds), "
@@ -205,14 +467,222 @@ def grasp(args: argparse.Namespace, work: Path) -> str:
             else ""
         )
         + f"\n\n{len(result.episodes)} episodes in {result.seconds / 60:.1f} min; per episode median "
-        f"{per_episode[len(per_episode) // 2]:.1f} s (in a worker, env and model set-up included in the first). "
-        + (f"Figures: {', '.join(figures)}.\n\n" if figures else "\n\n")
-        + f"`don-gym benchmark grasp --quick` (the README's run: {len(quick)} episodes, 1 repeat, sensor d435, "
+        f"{per_episode[len(per_episode) // 2]:.1f} s (in a worker, env and model set-up included in the first)."
+        + (f" Figures: {', '.join(figures)}." if figures else "")
+    )
+    if object_name == HEADLINE_OBJECT:
+        body += "\n\n" + readme_quick_run(args, work, result)
+    return body, result
+
+
+def readme_quick_run(args: argparse.Namespace, work: Path, result: GraspBenchmarkResult) -> str:
+    """The README's quick run, timed as a user runs it (a fresh process, imports included), checked
+    against the full run's matching episodes."""
+    quick_out = work / "grasp_quick"
+    command = [sys.executable, "-m", "don_gym.cli", "benchmark", "grasp", "--quick", "--no-progress"]
+    command += ["--workers", str(args.workers), "--out", str(quick_out)]
+    if args.quick:
+        command += ["--poses", "0", "1"]
+    start = time.perf_counter()
+    subprocess.run(command, check=True)
+    quick_s = time.perf_counter() - start
+    quick = json.loads((quick_out / "grasp_episodes.json").read_text())["episodes"]
+    same = [{k: v for k, v in e.items() if k != "seconds"} for e in quick] == [
+        {k: v for k, v in e.items() if k != "seconds"}
+        for e in result.episodes
+        if e["sensor"] == "d435"
+        and e["repeat"] == 0
+        and e["random_pose"] is None
+        and e["method"] in {q["method"] for q in quick}
+    ]
+    return (
+        f"`don-gym benchmark grasp --quick` (the README's run: {len(quick)} episodes, 1 repeat, sensor d435, "
         f"{args.workers} workers): {quick_s:.0f} s wall-clock including start-up; its episodes "
         + ("equal" if same else "DIFFER FROM")
         + " the full run's repeat-0 D435 episodes."
     )
-    return body
+
+
+def _by_kind(result: GraspBenchmarkResult, poses: str = "fixed") -> dict[str, dict[str, Any]]:
+    """``{kind: summary of the method}`` at the headline sensor, each with its ``name``."""
+    summary = result.summary()["results" if poses == "fixed" else "random_pose_results"][result.headline_sensor]
+    return {_kind(result.method_info.get(m, {}), m): {"name": m, **s} for m, s in summary.items()}
+
+
+def _targets(result: GraspBenchmarkResult) -> tuple[int, float, float]:
+    """Episodes per method at the fixed poses, and the paper's supervised result scaled to them."""
+    episodes = result.episodes_per_cell("fixed")
+    return episodes, TARGET_GRASPED_PER_8 * episodes / 8.0, TARGET_PLACED_PER_8 * episodes / 8.0
+
+
+def grasp_block(result: GraspBenchmarkResult, source: str) -> str:
+    """README: the object's outcome table at the D435, the targets, a sentence per kind of network, and for
+    the headline object the depth-sensor sweep."""
+    by_kind = _by_kind(result)
+    episodes, need_grasped, need_placed = _targets(result)
+    met = [
+        s["name"]
+        for kind, s in by_kind.items()
+        if kind != "oracle" and s["grasped"] >= need_grasped and s["counts"]["grasp_and_place"] >= need_placed
+    ]
+    missed = [s["name"] for kind, s in by_kind.items() if kind != "oracle" and s["name"] not in met]
+    lines = [
+        outcome_table(result),
+        "",
+        f"The paper's result for its supervised networks on the toolcap, all 8 poses grasped and at least 7 of 8 "
+        f"grasped and placed, scaled to {episodes} episodes (at least {need_grasped:g} grasped and "
+        f"{need_placed:g} grasped and placed): "
+        + (f"met by {', '.join(met)}" if met else "met by no network")
+        + (f"; missed by {', '.join(missed)}." if missed else "."),
+    ]
+    ssl = by_kind.get(SELF_SUPERVISED)
+    if ssl is not None:
+        lines[-1] += (
+            f" {ssl['name']}: grasped {format_rate(ssl['grasped'], episodes)}, grasped and placed "
+            f"{format_rate(ssl['counts']['grasp_and_place'], episodes)}, +axis flipped (placed upside down) in "
+            f"{ssl['flipped']} of {episodes}."
+        )
+    if result.config.object == HEADLINE_OBJECT and len(result.config.sensors) > 1:
+        lines += ["", "Depth-sensor sweep from ideal depth to the D435:", "", sweep_table(result)]
+    return "\n".join(lines) + "\n\n" + source
+
+
+def _grasp_rows(result: GraspBenchmarkResult, kinds: list[str]) -> list[str]:
+    episodes = result.episodes_per_cell("fixed")
+    by_kind = _by_kind(result)
+    lines = [
+        "| method | grasped | grasped and placed | +axis flipped | median yaw error (deg) |",
+        "|---|---|---|---|---:|",
+    ]
+    for kind in kinds:
+        if kind in by_kind:
+            s = by_kind[kind]
+            lines.append(
+                f"| {s['name']} | {format_rate(s['grasped'], episodes)} "
+                f"| {format_rate(s['counts']['grasp_and_place'], episodes)} | {format_rate(s['flipped'], episodes)} "
+                f"| {_mm(s['median_yaw_error_deg'])} |"
+            )
+    return lines
+
+
+def _grasp_data(result: GraspBenchmarkResult) -> str:
+    width, height = result.config.image_size
+    return (
+        f"Data: {result.config.object}, sensor `{result.headline_sensor}`, {width}x{height} wrist camera, "
+        f"{len(result.config.poses)} fixed poses x {result.config.repeats} repeats = "
+        f"{result.episodes_per_cell('fixed')} episodes per method (95% Wilson intervals)."
+    )
+
+
+def _meets_supervised_target(result: GraspBenchmarkResult, kind: str) -> list[str]:
+    episodes, need_grasped, need_placed = _targets(result)
+    s = _by_kind(result).get(kind)
+    if s is None:
+        return [f"{result.config.object}: no {kind} network benchmarked"]
+    failed = []
+    if s["grasped"] < need_grasped:
+        failed.append(f"{s['name']} grasped {s['grasped']} of {episodes} (needs {need_grasped:g})")
+    if s["counts"]["grasp_and_place"] < need_placed:
+        failed.append(
+            f"{s['name']} grasped and placed {s['counts']['grasp_and_place']} of {episodes} (needs {need_placed:g})"
+        )
+    return failed
+
+
+def grasp_claim_blocks(results: dict[str, GraspBenchmarkResult], source: Callable[[str], str]) -> dict[str, str]:
+    """docs/reproduction.md, claims (d) and (e) from the toolcap's result, (f) from the shaft's; ``source``
+    gives the provenance line of an object's grasp section."""
+    blocks = {}
+    kinds = ["oracle", *SUPERVISED, SELF_SUPERVISED]
+    toolcap = results.get(HEADLINE_OBJECT)
+    if toolcap is not None:
+        episodes, need_grasped, need_placed = _targets(toolcap)
+        failed = [f for kind in SUPERVISED for f in _meets_supervised_target(toolcap, kind)]
+        blocks[block("claim-d")] = "\n".join(
+            [
+                f"Criterion: each supervised network grasps the toolcap in all {episodes} episodes at the fixed "
+                f"poses (the paper's 8 of 8, scaled: at least {need_grasped:g}) and grasps and places it in at "
+                f"least {need_placed:g} (7 of 8, scaled). The oracle is shown as the reference.",
+                "",
+                *_grasp_rows(toolcap, kinds),
+                "",
+                f"Verdict: {_verdict(failed)}.",
+                "",
+                _grasp_data(toolcap),
+                "",
+                source(HEADLINE_OBJECT),
+            ]
+        )
+        by_kind = _by_kind(toolcap)
+        ssl = by_kind.get(SELF_SUPERVISED)
+        failed = []
+        if ssl is None:
+            failed.append("no self-supervised network benchmarked")
+        else:
+            for kind in SUPERVISED:
+                s = by_kind.get(kind)
+                if s is None:
+                    continue
+                if not ssl["flipped"] > s["flipped"]:
+                    failed.append(f"self-supervised flipped {ssl['flipped']}, {kind} {s['flipped']}")
+                if not ssl["counts"]["grasp_and_place"] < s["counts"]["grasp_and_place"]:
+                    failed.append(
+                        f"self-supervised grasped and placed {ssl['counts']['grasp_and_place']}, "
+                        f"{kind} {s['counts']['grasp_and_place']}"
+                    )
+        blocks[block("claim-e")] = "\n".join(
+            [
+                "Criterion: on the toolcap, the self-supervised network flips the part's +axis (grasps it "
+                "the wrong way round, so that it is placed upside down) in more episodes than each supervised "
+                "network, and grasps and places it in fewer.",
+                "",
+                *_grasp_rows(toolcap, kinds),
+                "",
+                f"Verdict: {_verdict(failed)}.",
+                "",
+                _grasp_data(toolcap),
+                "",
+                source(HEADLINE_OBJECT),
+            ]
+        )
+    shaft = results.get("shaft")
+    if shaft is not None:
+        episodes, need_grasped, need_placed = _targets(shaft)
+        networks = [k for k in (*SUPERVISED, SELF_SUPERVISED) if k in _by_kind(shaft)] or [*SUPERVISED]
+        failed = [f for kind in networks for f in _meets_supervised_target(shaft, kind)]
+        blocks[block("claim-f")] = "\n".join(
+            [
+                f"Criterion: every network, the self-supervised one included, meets on the shaft what the paper "
+                f"reports for the supervised networks on the toolcap: all {episodes} episodes at the fixed poses "
+                f"grasped (at least {need_grasped:g}), at least {need_placed:g} grasped and placed.",
+                "",
+                *_grasp_rows(shaft, kinds),
+                "",
+                f"Verdict: {_verdict(failed)}.",
+                "",
+                _grasp_data(shaft),
+                "",
+                source("shaft"),
+            ]
+        )
+    return blocks
+
+
+# --- main -----------------------------------------------------------------------------------------
+
+
+def grasp_section(object_name: str) -> str:
+    """The object's RESULTS.md section (the headline object keeps the name it always had)."""
+    return "grasp" if object_name == HEADLINE_OBJECT else f"grasp-{object_name}"
+
+
+def write_blocks(path: Path, blocks: dict[str, str], quick: bool) -> None:
+    """Print each block; outside ``--quick`` write it into ``path`` (:func:`_results.replace_block`)."""
+    for name, text in blocks.items():
+        print(f"\n--- {path.relative_to(REPO_ROOT)}, block {name}{' (not written: --quick)' if quick else ''} ---")
+        print(text)
+        if not quick:
+            replace_block(path, name, text)
 
 
 def main() -> None:
@@ -224,28 +694,51 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--random-poses", type=int, default=24, help="seeded random poses beyond the 8 fixed ones")
     parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--objects", nargs="+", default=list(OBJECTS), help="objects of the tracking evaluation")
+    parser.add_argument("--objects", nargs="+", default=list(OBJECTS), choices=OBJECTS, help="objects of both parts")
     parser.add_argument("--only", choices=("tracking", "grasp"), default=None)
     parser.add_argument("--quick", action="store_true", help="tiny smoke run in a temp dir; records nothing")
     args = parser.parse_args()
+    args.objects = [o for o in OBJECTS if o in args.objects]  # the headline object first, each once
     torch.set_num_threads(1)
+    preflight(args)
     work = Path(tempfile.mkdtemp(prefix="don_gym_bench_grasp_")) if args.quick else Path(args.work)
     if args.quick:
         args.scenes, args.frames, args.points, args.repeats, args.random_poses = 1, 4, 6, 1, 1
-    missing = [f"{o}/{m}" for o in ("toolcap",) for m in ("supervised-edge", "supervised-mask", "self-supervised")]
-    missing = [n for n in missing if n not in shipped_names()]
-    if missing and not args.quick:
-        sys.exit(f"shipped networks missing: {missing}; run benchmarks/train_shipped.py first")
+    record: Callable[..., Any] = (lambda *a, **k: None) if args.quick else record_section
     if args.only in (None, "tracking"):
-        body = tracking(args, work)
+        body, summaries = tracking(args, work)
         print(body)
-        if not args.quick:
-            record_section("tracking", "Tracking error of the shipped DONs (paper's protocol)", body)
+        record("tracking", "Tracking error of the shipped DONs (paper's protocol)", body)
+        source = provenance("benchmarks/RESULTS.md", "tracking")
+        write_blocks(
+            README_PATH,
+            {block(f"tracking-{o}"): tracking_block(o, s, source) for o, s in summaries.items()},
+            args.quick,
+        )
+        if set(OBJECTS) <= set(summaries):
+            write_blocks(
+                REPRODUCTION_PATH,
+                tracking_claim_blocks(summaries, provenance("../benchmarks/RESULTS.md", "tracking")),
+                args.quick,
+            )
     if args.only in (None, "grasp"):
-        body = grasp(args, work)
-        print(body)
-        if not args.quick:
-            record_section("grasp", "Grasp and place on the 8 fixed toolcap poses, and a depth-sensor sweep", body)
+        results = {}
+        for object_name in args.objects:
+            body, results[object_name] = grasp(args, work, object_name)
+            print(body)
+            section = grasp_section(object_name)
+            record(
+                section,
+                f"Grasp and place: {object_name}, 8 fixed poses, depth-sensor sweep, random poses",
+                body,
+                after=None if object_name == HEADLINE_OBJECT else grasp_section(HEADLINE_OBJECT),
+            )
+            source = provenance("benchmarks/RESULTS.md", section)
+            write_blocks(
+                README_PATH, {block(f"grasp-{object_name}"): grasp_block(results[object_name], source)}, args.quick
+            )
+        claims = grasp_claim_blocks(results, lambda o: provenance("../benchmarks/RESULTS.md", grasp_section(o)))
+        write_blocks(REPRODUCTION_PATH, claims, args.quick)
 
 
 if __name__ == "__main__":

@@ -66,7 +66,7 @@ PARTS = ("throughput", "ppo", "images", "sac")
 #: SAC keypoint sources, in the order of the curves.
 SAC_SOURCES = ("simulated", "don", "true")
 TABLE_HEAD = (
-    "| policy | success (grasp_and_place) | 95 % interval | grasp_only | fail | mean return | s / episode |\n"
+    "| policy | success (`is_success`) | 95 % interval | grasp_only | fail | mean return | s / episode |\n"
     "|---|---|---|---|---|---|---|"
 )
 

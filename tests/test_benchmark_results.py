@@ -40,3 +40,64 @@ def test_section_records_the_commit_and_uncommitted_changes(tmp_path: Path, monk
 
     monkeypatch.setenv("PATH", str(tmp_path / "no-bin"))  # no git at all
     assert _results.commit_description() == "unknown"
+
+
+def test_replace_block_replaces_between_markers_idempotently(tmp_path: Path) -> None:
+    doc = tmp_path / "README.md"
+    doc.write_text("# T\n\nbefore\n<!-- begin b:x -->\nold 1\nold 2\n<!-- end b:x -->\nafter\n")
+    _results.replace_block(doc, "b:x", "| a | 1 |\n")
+    once = doc.read_text()
+    assert once == "# T\n\nbefore\n<!-- begin b:x -->\n| a | 1 |\n<!-- end b:x -->\nafter\n"
+    _results.replace_block(doc, "b:x", "| a | 1 |")
+    assert doc.read_text() == once
+    _results.replace_block(doc, "b:x", "| a | 2 |")
+    assert doc.read_text() == once.replace("| a | 1 |", "| a | 2 |")
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "no markers\n",
+        "<!-- begin b:x -->\nonly a begin\n",
+        "<!-- end b:x -->\n<!-- begin b:x -->\n",  # in the wrong order
+        "<!-- begin b:x -->\n<!-- end b:x -->\n<!-- begin b:x -->\n<!-- end b:x -->\n",  # twice
+        "<!-- begin b:xy -->\n<!-- end b:xy -->\n",  # another block's
+    ],
+)
+def test_replace_block_refuses_missing_or_repeated_markers(tmp_path: Path, text: str) -> None:
+    doc = tmp_path / "doc.md"
+    doc.write_text(text)
+    with pytest.raises(_results.BlockMarkersError, match=r"doc\.md.*<!-- begin b:x -->"):
+        _results.replace_block(doc, "b:x", "new")
+    with pytest.raises(_results.BlockMarkersError):
+        _results.require_blocks(doc, ["b:x"])
+    assert doc.read_text() == text
+
+
+def test_replace_block_is_atomic(tmp_path: Path, monkeypatch) -> None:
+    doc = tmp_path / "doc.md"
+    original = "<!-- begin b:x -->\nold\n<!-- end b:x -->\n"
+    doc.write_text(original)
+    write_text = Path.write_text
+
+    def fail_halfway(self: Path, data: str, *args, **kwargs) -> int:
+        write_text(self, data[: len(data) // 2], *args, **kwargs)
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", fail_halfway)
+    with pytest.raises(OSError, match="No space"):
+        _results.replace_block(doc, "b:x", "new " * 100)
+    monkeypatch.undo()
+    # The document is the old one, whole, and no partial file is left beside it.
+    assert doc.read_text() == original
+    assert [p.name for p in tmp_path.iterdir()] == ["doc.md"]
+
+
+def test_a_new_section_goes_after_the_named_one(tmp_path: Path) -> None:
+    results = tmp_path / "RESULTS.md"
+    results.write_text("# R\n\n<!-- begin a -->\nA\n<!-- end a -->\n\n<!-- begin c -->\nC\n<!-- end c -->\n")
+    _results.record_section("b", "B", "body b", path=results, after="a")
+    _results.record_section("b", "B", "body b2", path=results, after="a")  # replaced in place
+    text = results.read_text()
+    assert text.index("<!-- end a -->") < text.index("<!-- begin b -->") < text.index("<!-- begin c -->")
+    assert text.count("<!-- begin b -->") == 1 and "body b2" in text and "body b\n" not in text

@@ -41,8 +41,8 @@ CRADLE_BASE_HALF_WIDTH_M = 0.025
 PLACE_TOLERANCE_M = 0.02
 AXIS_TOLERANCE_RAD = np.deg2rad(20.0)
 #: How far (m) :func:`grasp_point_object` keeps the finger pads from a step of the radius profile
-#: where the flat stretch allows: room for the perception's error along the axis (the oracle's grasp
-#: is up to ~6 mm off with the D435's calibration error and noise).
+#: where the flat stretch allows: room for the perception's error along the axis (with the D435's
+#: calibration error and noise even the oracle's grasp point is several millimetres off).
 GRASP_STEP_CLEARANCE_M = 0.010
 #: Height (m) of the centre of mass above its resting height that counts as "lifted".
 LIFT_HEIGHT_M = 0.03
