@@ -241,13 +241,15 @@ def tracking_figures(summary: dict[str, Any]) -> dict[str, dict[str, Any]]:
     out = {}
     for name, m in summary["methods"].items():
         plain, symmetric, closer = m["error_3d_mm"], m["error_3d_symmetric_mm"], m["fraction_closer"]
-        p50_sym = symmetric["p50"] if symmetric["p50"] is not None else plain["p50"]
-        ratio = plain["p99"] / plain["p50"] if plain["p50"] and plain["p99"] is not None else math.nan
+        # NaN where a method has no match with depth: every comparison with it fails, so no claim holds on it.
+        p50, p99 = (math.nan if plain[k] is None else plain[k] for k in ("p50", "p99"))
+        p50_sym = p50 if symmetric["p50"] is None else symmetric["p50"]
+        ratio = p99 / p50 if p50 > 0 else math.nan
         out[_kind(m["source"], name)] = {
             "name": name,
             "p50_sym_mm": p50_sym,
-            "p50_mm": plain["p50"],
-            "p99_mm": plain["p99"],
+            "p50_mm": p50,
+            "p99_mm": p99,
             "tail_ratio": ratio,
             "matches": m["counts"]["matches_with_depth"],
             "closer_pct": {k: None if v is None else 100.0 * v for k, v in closer.items()},
@@ -284,6 +286,16 @@ def tracking_block(object_name: str, summary: dict[str, Any], source: str) -> st
         f"| {f['name']} | {_mm(f['p50_sym_mm'])} | {_mm(f['p99_mm'])} | {f['matches']} |" for f in figures.values()
     ]
     return "\n".join(lines) + "\n\n" + source
+
+
+def _grasp_claim(
+    criterion: str, results: GraspBenchmarkResult, kinds: list[str], failed: list[str], source_line: str
+) -> str:
+    """A generated grasp-claim block: the criterion, the outcome rows, the computed verdict, the data, the source."""
+    rows = _grasp_rows(results, kinds)
+    return "\n".join(
+        [criterion, "", *rows, "", f"Verdict: {_verdict(failed)}.", "", _grasp_data(results), "", source_line]
+    )
 
 
 def _verdict(failed: list[str]) -> str:
@@ -335,24 +347,24 @@ def tracking_claim_blocks(summaries: dict[str, dict[str, Any]], source: str) -> 
         best = min(supervised, key=lambda k: supervised[k]["p50_sym_mm"])
         if not ssl["p50_sym_mm"] < supervised[best]["p50_sym_mm"]:
             a.append(
-                f"{object_name}: self-supervised median {_mm(ssl['p50_sym_mm'])} mm is not below {best}'s "
+                f"self-supervised median {_mm(ssl['p50_sym_mm'])} mm is not below {best}'s "
                 f"{_mm(supervised[best]['p50_sym_mm'])} mm"
             )
         if not ssl["tail_ratio"] >= LONG_TAIL_RATIO:
-            a.append(f"{object_name}: self-supervised p99 / median {_ratio(ssl['tail_ratio'])} < {LONG_TAIL_RATIO:g}x")
+            a.append(f"self-supervised p99 / median {_ratio(ssl['tail_ratio'])} < {LONG_TAIL_RATIO:g}x")
         failed_a[object_name] = a
         b = []
         for kind, s in supervised.items():
             if not s["tail_ratio"] < LONG_TAIL_RATIO:
-                b.append(f"{object_name}: {kind} has a long tail (p99 / median {_ratio(s['tail_ratio'])})")
+                b.append(f"{kind} has a long tail (p99 / median {_ratio(s['tail_ratio'])})")
             if not s["p50_sym_mm"] > ssl["p50_sym_mm"]:
                 b.append(
-                    f"{object_name}: {kind} is more accurate at the median than self-supervised "
+                    f"{kind} is more accurate at the median than self-supervised "
                     f"({_mm(s['p50_sym_mm'])} vs {_mm(ssl['p50_sym_mm'])} mm)"
                 )
             elif not s["p50_sym_mm"] <= SLIGHTLY_LESS_ACCURATE * ssl["p50_sym_mm"]:
                 b.append(
-                    f"{object_name}: {kind}'s median {_mm(s['p50_sym_mm'])} mm is more than "
+                    f"{kind}'s median {_mm(s['p50_sym_mm'])} mm is more than "
                     f"{SLIGHTLY_LESS_ACCURATE:g}x self-supervised's {_mm(ssl['p50_sym_mm'])} mm"
                 )
         failed_b[object_name] = b
@@ -360,10 +372,7 @@ def tracking_claim_blocks(summaries: dict[str, dict[str, Any]], source: str) -> 
         for kind, s in supervised.items():
             ssl_mean, mean = ssl["closer_pct"]["mean"], s["closer_pct"]["mean"]
             if ssl_mean is None or mean is None or not ssl_mean > mean:
-                c.append(
-                    f"{object_name}: self-supervised's mean fraction closer {_pct(ssl_mean)} is not above "
-                    f"{kind}'s {_pct(mean)}"
-                )
+                c.append(f"self-supervised's mean fraction closer {_pct(ssl_mean)} is not above {kind}'s {_pct(mean)}")
         failed_c[object_name] = c
 
     def claim(criterion: str, failed: dict[str, list[str]], rows: list[str]) -> str:
@@ -598,20 +607,14 @@ def grasp_claim_blocks(results: dict[str, GraspBenchmarkResult], source: Callabl
     if toolcap is not None:
         episodes, need_grasped, need_placed = _targets(toolcap)
         failed = [f for kind in SUPERVISED for f in _meets_supervised_target(toolcap, kind)]
-        blocks[block("claim-d")] = "\n".join(
-            [
-                f"Criterion: each supervised network grasps the toolcap in all {episodes} episodes at the fixed "
-                f"poses (the paper's 8 of 8, scaled: at least {need_grasped:g}) and grasps and places it in at "
-                f"least {need_placed:g} (7 of 8, scaled). The oracle is shown as the reference.",
-                "",
-                *_grasp_rows(toolcap, kinds),
-                "",
-                f"Verdict: {_verdict(failed)}.",
-                "",
-                _grasp_data(toolcap),
-                "",
-                source(HEADLINE_OBJECT),
-            ]
+        blocks[block("claim-d")] = _grasp_claim(
+            f"Criterion: each supervised network grasps the toolcap in all {episodes} episodes at the fixed "
+            f"poses (the paper's 8 of 8, scaled: at least {need_grasped:g}) and grasps and places it in at "
+            f"least {need_placed:g} (7 of 8, scaled). The oracle is shown as the reference.",
+            toolcap,
+            kinds,
+            failed,
+            source(HEADLINE_OBJECT),
         )
         by_kind = _by_kind(toolcap)
         ssl = by_kind.get(SELF_SUPERVISED)
@@ -630,40 +633,28 @@ def grasp_claim_blocks(results: dict[str, GraspBenchmarkResult], source: Callabl
                         f"self-supervised grasped and placed {ssl['counts']['grasp_and_place']}, "
                         f"{kind} {s['counts']['grasp_and_place']}"
                     )
-        blocks[block("claim-e")] = "\n".join(
-            [
-                "Criterion: on the toolcap, the self-supervised network flips the part's +axis (grasps it "
-                "the wrong way round, so that it is placed upside down) in more episodes than each supervised "
-                "network, and grasps and places it in fewer.",
-                "",
-                *_grasp_rows(toolcap, kinds),
-                "",
-                f"Verdict: {_verdict(failed)}.",
-                "",
-                _grasp_data(toolcap),
-                "",
-                source(HEADLINE_OBJECT),
-            ]
+        blocks[block("claim-e")] = _grasp_claim(
+            "Criterion: on the toolcap, the self-supervised network flips the part's +axis (grasps it "
+            "the wrong way round, so that it is placed upside down) in more episodes than each supervised "
+            "network, and grasps and places it in fewer.",
+            toolcap,
+            kinds,
+            failed,
+            source(HEADLINE_OBJECT),
         )
     shaft = results.get("shaft")
     if shaft is not None:
         episodes, need_grasped, need_placed = _targets(shaft)
         networks = [k for k in (*SUPERVISED, SELF_SUPERVISED) if k in _by_kind(shaft)] or [*SUPERVISED]
         failed = [f for kind in networks for f in _meets_supervised_target(shaft, kind)]
-        blocks[block("claim-f")] = "\n".join(
-            [
-                f"Criterion: every network, the self-supervised one included, meets on the shaft what the paper "
-                f"reports for the supervised networks on the toolcap: all {episodes} episodes at the fixed poses "
-                f"grasped (at least {need_grasped:g}), at least {need_placed:g} grasped and placed.",
-                "",
-                *_grasp_rows(shaft, kinds),
-                "",
-                f"Verdict: {_verdict(failed)}.",
-                "",
-                _grasp_data(shaft),
-                "",
-                source("shaft"),
-            ]
+        blocks[block("claim-f")] = _grasp_claim(
+            f"Criterion: every network, the self-supervised one included, meets on the shaft what the paper "
+            f"reports for the supervised networks on the toolcap: all {episodes} episodes at the fixed poses "
+            f"grasped (at least {need_grasped:g}), at least {need_placed:g} grasped and placed.",
+            shaft,
+            kinds,
+            failed,
+            source("shaft"),
         )
     return blocks
 

@@ -149,7 +149,11 @@ class KeypointObservation(DescriptorObservation):
         self.observation_space = spaces.Dict(entries)
 
     def _add_descriptors(self, obs: dict[str, np.ndarray], info: dict[str, Any]) -> dict[str, np.ndarray]:
-        obs = super()._add_descriptors(obs, info)
+        return self.add_keypoints(super()._add_descriptors(obs, info))
+
+    def add_keypoints(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """``obs`` with ``descriptors`` (H, W, D) plus the tracked keypoints (and without the images
+        unless ``keep_images``); shared with :class:`~don_gym.wrappers.VectorKeypointObservation`."""
         found = locate_keypoints(
             obs["descriptors"],
             obs["depth"],

@@ -21,11 +21,9 @@ from gymnasium.vector.utils import batch_space, concatenate, create_empty_array,
 
 from don_gym.descriptor_sources import DescriptorSource, NetworkDescriptors
 from don_gym.errors import DonGymError
-from don_gym.geometry import CameraIntrinsics
-from don_gym.keypoints import locate_keypoints
 from don_gym.model import DenseObjectNet
 from don_gym.wrappers.descriptors import DESCRIPTOR_BOUND
-from don_gym.wrappers.keypoints import IMAGE_KEYS, POINT_BOUND_M, KeypointObservation
+from don_gym.wrappers.keypoints import KeypointObservation
 
 
 def unbatch_info(infos: Mapping[str, Any], index: int) -> dict[str, Any]:
@@ -143,25 +141,7 @@ class VectorKeypointObservation(VectorWrapper):
         out["descriptors"] = descriptors
         if not self.keypoints_enabled:
             return out
-        t = self.template
-        found = locate_keypoints(
-            descriptors,
-            obs["depth"],
-            CameraIntrinsics.from_array(obs["camera_intrinsics"]),
-            np.asarray(obs["camera_pose"], dtype=np.float64),
-            t.reference_descriptors,
-            window_m=t.window_m,
-            temperature=t.temperature,
-            sigma=t.confidence_sigma,
-            min_radius_px=t.min_radius_px,
-            max_radius_px=t.max_radius_px,
-        )
-        if not self.keep_images:
-            out = {k: v for k, v in out.items() if k not in IMAGE_KEYS}
-        out["keypoint_pixels"] = found.pixels.astype(np.float32)
-        out["keypoint_points"] = np.clip(found.points_world, -POINT_BOUND_M, POINT_BOUND_M).astype(np.float32)
-        out["keypoint_confidence"] = found.confidence
-        return out
+        return self.template.add_keypoints(out)
 
     def _batched(self, observations: Any, infos: Mapping[str, Any], extra: Sequence[tuple[Any, Any]] = ()):
         frames = [
