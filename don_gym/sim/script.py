@@ -38,9 +38,9 @@ PLACE_SPEED_M_S = 0.05
 RETRACT_SPEED_M_S = 0.2
 #: Lift (m) before opening when the fingertips touch the cradle's walls.
 FINGER_CLEARANCE_M = 0.004
-#: The release counts as stalled when the fingers stop this far (m) short of fully open while still
-#: touching the part; the script then squeezes and opens again, at most RELEASE_RETRIES times.
-RELEASE_STALL_M = 0.005
+#: The release counts as failed while a finger still touches the part after opening (stalled short
+#: of fully open, or fully open with the part stuck to one pad); the script then squeezes and opens
+#: again, at most RELEASE_RETRIES times.
 RELEASE_RETRIES = 3
 #: Margin (rad) kept from joint 7's limits when choosing wrist angles.
 WRIST_MARGIN_RAD = 0.08
@@ -244,14 +244,11 @@ class GraspPlaceScript:
             # drops the last few millimetres into the groove.
             self.move(self._tcp + np.array([0.0, 0.0, FINGER_CLEARANCE_M]), self._wrist, 0.02, settle_s=0.1)
         trace.release_width_m = self.gripper(MAX_WIDTH_M, max_time_s=1.0)
-        while (
-            trace.release_retries < RELEASE_RETRIES
-            and trace.release_width_m < MAX_WIDTH_M - RELEASE_STALL_M
-            and any(robot.contacts(task).fingers)
-        ):
+        while trace.release_retries < RELEASE_RETRIES and any(robot.contacts(task).fingers):
             # A part that crept a few degrees in yaw between the pads during the carry can wedge
             # between opposite pad corners as they open (the simulated contacts then hold the
-            # fingers); squeezing it again lines it up with the pads.
+            # fingers), or stay stuck to one pad that drags it up the groove's wall and, on the
+            # retract, out of the cradle; squeezing it again lines it up with the pads.
             trace.release_retries += 1
             self.gripper(0.0)
             trace.release_width_m = self.gripper(MAX_WIDTH_M, max_time_s=1.0)
