@@ -7,7 +7,6 @@ import warnings
 import gymnasium as gym
 import numpy as np
 import pytest
-import torch
 
 import don_gym  # noqa: F401 - registers the envs
 from don_gym.agents import AxisGraspAgent
@@ -20,14 +19,6 @@ from don_gym.objects import load_object
 from don_gym.sim.task import OUTCOMES
 from don_gym.train import TrainConfig, train
 from don_gym.zoo import read_don_metadata, shipped_names
-
-
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def _angle_deg(a: float, b: float) -> float:

@@ -21,17 +21,6 @@ from don_gym.checkpoints import (
 from don_gym.errors import CheckpointError, DonGymError
 from don_gym.model import DenseObjectNet
 
-
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Tiny tensors gain nothing from a second thread, and OpenMP threads stall at barriers
-    when another process holds a core; one thread keeps these tests fast on a shared machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 METADATA = CheckpointMetadata(
     method="supervised-mask",
     object_name="toolcap",

@@ -21,16 +21,6 @@ from don_gym.methods import METHODS, SUPERVISED_TARGET_VARIANT, is_supervised, v
 from don_gym.model import DenseObjectNet
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Tiny tensors gain nothing from a second thread, and OpenMP threads stall at barriers
-    when another process holds a core; one thread keeps these tests fast on a shared machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def test_methods_are_canonical() -> None:
     assert METHODS == ("supervised", "supervised-edge", "supervised-mask", "self-supervised")
     assert all(validate_method(m) == m for m in METHODS)

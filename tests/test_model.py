@@ -14,16 +14,6 @@ from don_gym.errors import CheckpointError, DonGymError
 from don_gym.model import ARCHS, DEFAULT_ARCH, DenseObjectNet
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Tiny tensors gain nothing from a second thread, and OpenMP threads stall at barriers
-    when another process holds a core; one thread keeps these tests fast on a shared machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.mark.parametrize("arch", sorted(ARCHS))
 def test_output_matches_input_size_and_stride_8_inside(arch: str) -> None:
     model = DenseObjectNet(arch, descriptor_dim=5).eval()

@@ -38,14 +38,6 @@ from don_gym.wrappers.simulated_keypoints import axis_points_world, in_view, rin
 sb3 = pytest.importorskip("stable_baselines3")
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def _tiny_checkpoint(path: Path, object_name: str = "toolcap") -> Path:
     torch.manual_seed(0)
     metadata = CheckpointMetadata(

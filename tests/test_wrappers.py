@@ -38,15 +38,6 @@ from don_gym.model import DenseObjectNet
 from don_gym.objects import load_object
 from don_gym.wrappers import DESCRIPTOR_BOUND, DescriptorObservation, KeypointObservation
 
-
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 # ---------------------------------------------------------------------------------------- keypoints core
 
 
