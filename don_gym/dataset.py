@@ -46,9 +46,6 @@ MASK_KINDS = ("mask", "mask_fused", "target_mask")
 #: Named depth sources: the (depth kind, object-mask kind) images each one reads.
 DEPTH_SOURCES = {"fused": ("depth_fused", "mask_fused"), "sensor": ("depth", "mask"), "ideal": ("depth_ideal", "mask")}
 
-#: Largest depth a uint16 millimetre PNG can hold, metres.
-PNG_DEPTH_MAX_M = 65.535
-
 #: Settings of ``dataset.json`` that shape the data, so they must be equal for two builds to share a
 #: directory, each with the ``build-dataset`` option that sets it (named in refusals). The part and the
 #: descriptor field are compared by value within tolerances (:func:`check_dataset_identity`), never by
