@@ -55,8 +55,9 @@ from don_gym.plotting import plot_learning_curve  # noqa: E402
 from don_gym.stats import wilson_interval  # noqa: E402
 from don_gym.zoo import read_don_metadata, shipped_names  # noqa: E402
 
-FIGURES = Path(__file__).resolve().parent / "figures"
-DEFAULT_OUT = Path(__file__).resolve().parent.parent / "runs" / "rl"
+REPOSITORY = Path(__file__).resolve().parent.parent
+FIGURES = REPOSITORY / "benchmarks" / "figures"
+DEFAULT_OUT = REPOSITORY / "runs" / "rl"
 #: Held-out evaluation episodes are reset with EVAL_SEED + i; training envs draw from seed + i.
 EVAL_SEED = 100_000
 #: Preferred keypoint model: the shipped supervised network; the oracle until it exists.
@@ -89,9 +90,13 @@ def _summary(result: rl.EvaluationResult) -> dict[str, Any]:
     return {"successes": wins, "episodes": n, "wilson_95": interval, "mean_return": result.mean_return}
 
 
-def _shown(figure: Path) -> str:
-    """A figure's path as RESULTS.md names it (relative to the repository), or as written."""
-    return f"benchmarks/figures/{figure.name}" if figure.parent == FIGURES else str(figure)
+def _shown(path: Path) -> str:
+    """A path as RESULTS.md names it: relative to the repository when inside it (no machine's own
+    directories in the record), else as written."""
+    try:
+        return str(Path(path).resolve().relative_to(REPOSITORY))
+    except ValueError:
+        return str(path)
 
 
 def _train(args: argparse.Namespace, name: str, algorithm: str, steps: int, **kwargs: Any) -> rl.RLTrainResult:
@@ -247,8 +252,9 @@ def run_ppo(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         "actions are residuals about the keypoints' own grasp (midpoint lowered to the axis, axis yaw: action 0 "
         "grasps there; in the former centroid frame the MLP had to compute the world yaw from the keypoints' "
         "difference and explored with 3 cm noise, and reached 24 % in this budget); PPO "
-        f"rollouts of {n_steps * args.ppo_envs} steps, MLP 64x64, seed {args.seed}. Runs: `{args.out}/ppo_don`, "
-        f"`{args.out}/ppo_simulated`. Learning curves: `{_shown(figure)}`.",
+        f"rollouts of {n_steps * args.ppo_envs} steps, MLP 64x64, seed {args.seed}. "
+        f"Runs: `{_shown(args.out / 'ppo_don')}`, "
+        f"`{_shown(args.out / 'ppo_simulated')}`. Learning curves: `{_shown(figure)}`.",
         "",
         f"Evaluation on the same {n} held-out episodes (seeds {EVAL_SEED}..{EVAL_SEED + n - 1}); transfer gap of "
         f"the policy trained on the model of the DON (its success there minus with the DON): {gap:+.0%}.",
@@ -298,7 +304,7 @@ def run_images(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict
         f"{trained.wall_s / 60:.1f} min; the `{keypoint_model}` descriptor image resized to "
         f"{args.cnn_size[0]}x{args.cnn_size[1]}, clipped to [0, 1] and quantised to uint8 (`DescriptorImage`), "
         f"through SB3's `{extractor}`; actions span the env's action box (the policy has to find the part). "
-        f"Run: `{args.out}/ppo_images`. Learning curve: `{_shown(figure)}`.",
+        f"Run: `{_shown(args.out / 'ppo_images')}`. Learning curve: `{_shown(figure)}`.",
         "",
         TABLE_HEAD,
         *[_row(name, result) for name, result in results.items()],
@@ -373,7 +379,7 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         f"plus the desired goal. Keypoints: `simulated` (a model of `{keypoint_model}`, no rendering), `don` "
         f"(`{keypoint_model}` on {args.image_size[0]}x{args.image_size[1]} wrist images), `true` (exact, always "
         f"seen). {times}. Learning starts {args.sac_learning_starts}, MLP 256x256, seed {args.seed}. Runs: "
-        f"`{args.out}/sac_{args.sac_goal}_*`. Learning curves: `{_shown(figure)}`.",
+        f"`{_shown(args.out)}/sac_{args.sac_goal}_*`. Learning curves: `{_shown(figure)}`.",
         "",
         f"Evaluation on the same {n} held-out episodes (seeds {EVAL_SEED}..{EVAL_SEED + n - 1}), every policy with "
         f"its own keypoints unless said; transfer gap of the simulated-keypoint policy (there minus with the "
