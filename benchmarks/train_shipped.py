@@ -63,6 +63,9 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=6000)
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--threads", type=int, default=1, help="torch threads per training (1: see TrainConfig)")
+    # Batches built in worker processes do not change the curve (don_gym.train), only the time: the
+    # loading share of a step was a third at 256x192 crops without them.
+    parser.add_argument("--workers", type=int, default=2, help="processes that build the batches (0: in the loop)")
     parser.add_argument("--objects", nargs="+", default=list(OBJECTS))
     parser.add_argument("--methods", nargs="+", default=list(METHODS))
     parser.add_argument("--quick", action="store_true", help="tiny smoke run in a temp dir; copies nothing")
@@ -101,6 +104,7 @@ def main() -> None:
                     seed=0,
                     crop_size=args.crop,
                     threads=args.threads,
+                    workers=args.workers,
                     checkpoint_every=max(1, args.steps // 4),
                 ),
                 resume=True,
@@ -124,8 +128,8 @@ def main() -> None:
     body = f"""Datasets: {args.scenes} scenes x {args.frames} frames, {width}x{height}, sensor `d435`, TinyRenderer,
 seed 0. Training: `resnet-lite`, {args.steps} steps, batch {args.batch_size} (images, or image pairs for
 self-supervised), {crop_w}x{crop_h} object-centred crops, Adam lr 1e-3 x0.9 every 250 steps, seed 0,
-{args.threads} torch thread(s). Final loss = mean of the last 5% of steps (the two methods' losses
-are on different scales and not comparable with each other). Minutes and images/s add up every
+{args.threads} torch thread(s), {args.workers} loader worker(s). Final loss = mean of the last 5% of steps
+(the two methods' losses are on different scales and not comparable with each other). Minutes and images/s add up every
 session of a resumed run; n/a marks a run resumed from a state saved before don_gym recorded them.
 
 | object | method | steps | minutes | images/s | final loss | MB |
