@@ -19,6 +19,8 @@ from pathlib import Path
 
 RESULTS_PATH = Path(__file__).resolve().parent / "RESULTS.md"
 REPO_ROOT = RESULTS_PATH.parent.parent
+#: Where the benchmarks write their figures (RESULTS.md names them relative to REPO_ROOT).
+FIGURES = RESULTS_PATH.parent / "figures"
 #: Paths the benchmarks themselves write: changes there do not make a measurement's code uncommitted.
 BENCHMARK_OUTPUTS = ("benchmarks/RESULTS.md", "benchmarks/figures/")
 

@@ -29,6 +29,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import (  # noqa: E402
+    FIGURES,
     REPO_ROOT,
     command_line,
     commit_description,
@@ -57,7 +58,6 @@ from don_gym.objects import load_object  # noqa: E402
 from don_gym.stats import format_rate  # noqa: E402
 from don_gym.zoo import read_don_metadata, shipped_names_for  # noqa: E402
 
-FIGURES = Path(__file__).resolve().parent / "figures"
 README_PATH = REPO_ROOT / "README.md"
 REPRODUCTION_PATH = REPO_ROOT / "docs" / "reproduction.md"
 EVAL_SEED = 1000

@@ -45,7 +45,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _results import record_section  # noqa: E402
+from _results import FIGURES, REPO_ROOT, record_section  # noqa: E402
 
 from don_gym.agents import AxisGraspAgent, rl  # noqa: E402
 from don_gym.errors import DonGymError  # noqa: E402
@@ -55,9 +55,7 @@ from don_gym.plotting import plot_learning_curve  # noqa: E402
 from don_gym.stats import wilson_interval  # noqa: E402
 from don_gym.zoo import read_don_metadata, shipped_names  # noqa: E402
 
-REPOSITORY = Path(__file__).resolve().parent.parent
-FIGURES = REPOSITORY / "benchmarks" / "figures"
-DEFAULT_OUT = REPOSITORY / "runs" / "rl"
+DEFAULT_OUT = REPO_ROOT / "runs" / "rl"
 #: Held-out evaluation episodes are reset with EVAL_SEED + i; training envs draw from seed + i.
 EVAL_SEED = 100_000
 #: Preferred keypoint model: the shipped supervised network; the oracle until it exists.
@@ -94,7 +92,7 @@ def _shown(path: Path) -> str:
     """A path as RESULTS.md names it: relative to the repository when inside it (no machine's own
     directories in the record), else as written."""
     try:
-        return str(Path(path).resolve().relative_to(REPOSITORY))
+        return str(Path(path).resolve().relative_to(REPO_ROOT))
     except ValueError:
         return str(path)
 
