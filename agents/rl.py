@@ -42,9 +42,9 @@ from don_gym.errors import DonGymError
 from don_gym.io import atomic_path, write_text_atomic
 from don_gym.sim.task import OUTCOMES
 from don_gym.wrappers import KeypointObservation
-from don_gym.wrappers.goals import GOALS, KeypointGoal
+from don_gym.wrappers.goals import GOALS, HandStarts, KeypointGoal
 from don_gym.wrappers.images import DescriptorImage
-from don_gym.wrappers.rl import KeypointFeatures, KeypointGraspAction
+from don_gym.wrappers.rl import POSITION_UNIT_M, WORKSPACE_CENTRE_M, KeypointFeatures, KeypointGraspAction
 from don_gym.wrappers.simulated_keypoints import SimulatedKeypoints
 
 #: The pip command that installs stable-baselines3 for these baselines.
@@ -78,8 +78,16 @@ def require_sb3() -> Any:
 
 
 # ------------------------------------------------------------------------------- the envs
-def _base_env(object: str | Path, images: bool, image_size: tuple[int, int] | None, **env_kwargs: Any) -> gym.Env:
-    return gym.make("DONPick-v0", object=object, image_size=image_size if images else None, **env_kwargs)
+def _base_env(
+    object: str | Path,  # noqa: A002 - the env's own kwarg name
+    images: bool,
+    image_size: tuple[int, int] | None,
+    hand_starts: dict[str, float] | None = None,
+    **env_kwargs: Any,
+) -> gym.Env:
+    env = gym.make("DONPick-v0", object=object, image_size=image_size if images else None, **env_kwargs)
+    # Innermost, so that a vector env's automatic resets (which pass no options) draw a start too.
+    return HandStarts(env, hand_starts) if hand_starts else env
 
 
 def _with_keypoints(
@@ -148,17 +156,19 @@ def make_sac_env(
     noise: Any = None,
     goal: str | None = None,
     keypoint_kwargs: dict[str, Any] | None = None,
+    hand_starts: dict[str, float] | None = None,
 ) -> gym.Env:
     """The SAC baseline's env: ``control="ee"``, keypoints of every wrist-camera frame (relative to the
     TCP) plus the robot state as one flat vector; the keypoints move with the camera and vanish when
     the part leaves the view, their confidences let the policy tell. ``goal`` ("place" or the "lift"
     sub-task): the goal-conditioned dict of :class:`~don_gym.wrappers.KeypointGoal` for HER, with its
-    sparse goal reward instead of ``reward_type``'s."""
+    sparse goal reward instead of ``reward_type``'s. ``hand_starts``: shares of episodes that start with
+    the hand at or on the part (:class:`~don_gym.wrappers.HandStarts`; for training)."""
     _check_keypoints(keypoints)
     if goal is not None and goal not in GOALS:
         raise DonGymError(f"goal={goal!r} is unknown; expected None or one of {list(GOALS)}")
     env = _base_env(
-        object, keypoints == "don", image_size, control="ee", sensor=sensor, reward_type=reward_type,
+        object, keypoints == "don", image_size, hand_starts, control="ee", sensor=sensor, reward_type=reward_type,
         max_steps=max_steps,
     )  # fmt: skip
     env = _with_keypoints(env, keypoints, keypoint_model, noise, keypoint_kwargs)
@@ -364,6 +374,7 @@ def make_batched_sac_vec_env(
         kwargs.get("object", "toolcap"),
         True,
         kwargs.get("image_size", (160, 120)),
+        kwargs.get("hand_starts"),
         control="ee",
         sensor=kwargs.get("sensor", "d435"),
         reward_type=kwargs.get("reward_type", "dense"),
@@ -510,13 +521,26 @@ class RLTrainResult:
 
 
 def _policy_inputs_extractor() -> type:
-    """SB3 features extractor for goal dicts that leaves ``achieved_goal`` (the true keypoints) out."""
+    """SB3 features extractor for goal dicts that leaves ``achieved_goal`` (the true keypoints) out and gives
+    ``desired_goal`` (world metres) in the units of the ``observation`` vector's positions
+    (:data:`~don_gym.wrappers.rl.POSITION_UNIT_M` from :data:`~don_gym.wrappers.rl.WORKSPACE_CENTRE_M`)."""
+    import torch
     from stable_baselines3.common.torch_layers import CombinedExtractor
 
     class PolicyInputs(CombinedExtractor):
         def __init__(self, observation_space: spaces.Dict, **kwargs: Any) -> None:
             kept = spaces.Dict({k: v for k, v in observation_space.spaces.items() if k != "achieved_goal"})
             super().__init__(kept, **kwargs)
+            # Raw metres put a 6 cm lift goal at 0.06 beside observation entries of order 1: the goal
+            # then barely moves the first layer, and the critic learns it slowly.
+            centre = torch.as_tensor(np.tile(WORKSPACE_CENTRE_M, 2), dtype=torch.float32)
+            self.register_buffer("goal_centre", centre, persistent=False)
+
+        def forward(self, observations: dict[str, Any]) -> Any:
+            inputs = dict(observations)
+            if "desired_goal" in inputs:
+                inputs["desired_goal"] = (inputs["desired_goal"] - self.goal_centre) / POSITION_UNIT_M
+            return super().forward(inputs)
 
     return PolicyInputs
 

@@ -11,15 +11,18 @@ Parts (``--only``, repeatable; all by default):
 - ``sac``: SAC with HER on ``control="ee"`` (goal ``--sac-goal``: the ``lift`` sub-task by default, the full
   ``place`` task being beyond this budget), learning curves from simulated keypoints, DON keypoints and the
   true keypoints side by side; the simulated-keypoint policy is also evaluated with the DON (transfer).
+  Training episodes start in shares ``--sac-hand-starts`` with the hand at or on the part (``HandStarts``,
+  the HER paper's device); every policy is evaluated from the task's start and with the part in the hand.
 
 Every policy is evaluated on the same held-out seeds (``reset(seed=EVAL_SEED + i)``) with 95 % Wilson
 intervals. Every training run writes its learning curve (CSV, PNG), configuration and seeds (JSON) and
 periodic saves into ``--out`` (``runs/rl`` by default, a temporary directory with ``--quick``);
-``--resume`` continues interrupted runs there. Figures go to ``benchmarks/figures/``, results to the "rl"
-section of ``benchmarks/RESULTS.md`` (only for a full run of all parts).
+``--resume`` continues interrupted runs there. Figures go to ``benchmarks/figures/``, results to one section
+of ``benchmarks/RESULTS.md`` per part that ran (``rl-throughput``, ``rl-ppo``, ``rl-images``, ``rl-sac``;
+not with ``--quick``).
 
     python benchmarks/bench_rl.py                      # full CPU run, all parts (~1.5-2 h on 2 cores)
-    python benchmarks/bench_rl.py --only ppo --resume  # one part, continuing its runs in runs/rl
+    python benchmarks/bench_rl.py --only sac --resume  # one part, continuing its runs in runs/rl
     python benchmarks/bench_rl.py --quick              # smoke run of every part (a few minutes), records nothing
 
 Longer recipe for a GPU machine (16 cores, one GPU: the DON on the GPU on 8 envs' images at once, their
@@ -52,7 +55,9 @@ from don_gym.errors import DonGymError  # noqa: E402
 from don_gym.io import write_text_atomic  # noqa: E402
 from don_gym.objects import load_object  # noqa: E402
 from don_gym.plotting import plot_learning_curve  # noqa: E402
+from don_gym.sim.env import HAND_STARTS  # noqa: E402
 from don_gym.stats import wilson_interval  # noqa: E402
+from don_gym.wrappers.goals import hand_start_shares  # noqa: E402
 from don_gym.zoo import read_don_metadata, shipped_names  # noqa: E402
 
 DEFAULT_OUT = REPO_ROOT / "runs" / "rl"
@@ -64,6 +69,17 @@ ORACLE_IMAGE_SIZE = (160, 120)  # no network to match: small images keep the ora
 PARTS = ("throughput", "ppo", "images", "sac")
 #: SAC keypoint sources, in the order of the curves.
 SAC_SOURCES = ("simulated", "don", "true")
+#: SAC evaluation starts: the task's own (the hand observing from above), and the part in the closed hand.
+SAC_EVAL_STARTS = {"task start": None, "part in hand": {"in_hand": 1.0}}
+#: SAC training starts (HandStarts shares; the rest start from the task's start).
+DEFAULT_HAND_STARTS = {"in_hand": 0.5, "at_part": 0.25}
+#: Titles of the RESULTS.md sections, one per part.
+PART_TITLES = {
+    "throughput": "RL: batched DON inference (bench_rl.py)",
+    "ppo": "RL: PPO from DON keypoints (bench_rl.py)",
+    "images": "RL: PPO from descriptor images (bench_rl.py)",
+    "sac": "RL: SAC with HER (bench_rl.py)",
+}
 TABLE_HEAD = (
     "| policy | success (`is_success`) | 95 % interval | grasp_only | fail | mean return | s / episode |\n"
     "|---|---|---|---|---|---|---|"
@@ -324,28 +340,33 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
     if args.sac_envs > 1:
         algo["gradient_steps"] = -1  # a gradient step per env step, whatever the number of envs
     steps = {"simulated": args.sac_steps, "true": args.sac_steps, "don": args.sac_don_steps}
+    train_kwargs = base_kwargs | ({"hand_starts": args.sac_hand_starts} if args.sac_hand_starts else {})
     runs = {}
     for source in SAC_SOURCES:
         vectorize = args.vectorize if (source == "don" and args.sac_envs > 1) else None
         runs[source] = _train(
             args, f"sac_{args.sac_goal}_{source}", "sac", steps[source], n_envs=args.sac_envs,
-            env_kwargs=base_kwargs | {"keypoints": source}, algo_kwargs=algo, vectorize=vectorize,
+            env_kwargs=train_kwargs | {"keypoints": source}, algo_kwargs=algo, vectorize=vectorize,
         )  # fmt: skip
     n = args.sac_eval_episodes
     results = {}
-    for source in SAC_SOURCES:
-        env = rl.make_sac_env(**base_kwargs, keypoints=source)
-        results[f"SAC+HER, {source} keypoints"] = rl.evaluate(
-            env, rl.model_policy(runs[source].model), n, EVAL_SEED, f"eval SAC ({source})"
-        )
-        if source == "don":
-            results["SAC+HER trained on simulated keypoints, run with the DON"] = rl.evaluate(
-                env, rl.model_policy(runs["simulated"].model), n, EVAL_SEED, "eval SAC (simulated -> DON)"
+    for start, hand_starts in SAC_EVAL_STARTS.items():
+        for source in SAC_SOURCES:
+            env = rl.make_sac_env(**base_kwargs, keypoints=source, hand_starts=hand_starts)
+            results[f"{start}: SAC+HER, {source} keypoints"] = rl.evaluate(
+                env, rl.model_policy(runs[source].model), n, EVAL_SEED, f"eval SAC ({source}, {start})"
             )
-            results["random"] = rl.evaluate(
-                env, rl.random_policy(env.action_space, args.seed), n, EVAL_SEED, "eval random"
-            )
-        env.close()
+            if source == "don":
+                results[f"{start}: SAC+HER trained on simulated keypoints, run with the DON"] = rl.evaluate(
+                    env, rl.model_policy(runs["simulated"].model), n, EVAL_SEED, f"eval SAC (sim -> DON, {start})"
+                )
+            if source == "true":
+                # Random actions ignore the observation, and nothing in the physics depends on the keypoints'
+                # source: the fastest env gives the same episodes.
+                results[f"{start}: random"] = rl.evaluate(
+                    env, rl.random_policy(env.action_space, args.seed), n, EVAL_SEED, f"eval random ({start})"
+                )
+            env.close()
     window = max(3, min(50, min(len(r.curve.successes) for r in runs.values()) // 5))
     figure = args.figures / f"rl_sac_her_{args.sac_goal}.png"
     plot_learning_curve(
@@ -355,9 +376,16 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         f"SAC+HER, control='ee', goal '{args.sac_goal}', keypoints: simulated / {keypoint_model} / true",
         reference_lines=[(f"eval: {name}", r.success_rate, r.mean_return) for name, r in results.items()],
     )
-    gap = (
-        results["SAC+HER, simulated keypoints"].success_rate
-        - results["SAC+HER trained on simulated keypoints, run with the DON"].success_rate
+    gaps = ", ".join(
+        f"{start} {results[f'{start}: SAC+HER, simulated keypoints'].success_rate - results[f'{start}: SAC+HER trained on simulated keypoints, run with the DON'].success_rate:+.0%}"  # noqa: E501
+        for start in SAC_EVAL_STARTS
+    )
+    starts_text = (
+        "training episodes start with the hand "
+        + ", ".join(f"{name} {share:.0%}" for name, share in args.sac_hand_starts.items())
+        + " of the time (`HandStarts`; the rest from the task's start)"
+        if args.sac_hand_starts
+        else "training episodes start from the task's start"
     )
     times = ", ".join(
         f"{source} {steps[source]} steps in {runs[source].wall_s / 60:.1f} min "
@@ -376,12 +404,14 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         "keypoints of each frame (the true `achieved_goal` only relabels and rewards, it is not a policy input) "
         f"plus the desired goal. Keypoints: `simulated` (a model of `{keypoint_model}`, no rendering), `don` "
         f"(`{keypoint_model}` on {args.image_size[0]}x{args.image_size[1]} wrist images), `true` (exact, always "
-        f"seen). {times}. Learning starts {args.sac_learning_starts}, MLP 256x256, seed {args.seed}. Runs: "
-        f"`{_shown(args.out)}/sac_{args.sac_goal}_*`. Learning curves: `{_shown(figure)}`.",
+        f"seen). {times}; {starts_text}. Learning starts {args.sac_learning_starts}, MLP 256x256, seed "
+        f"{args.seed}. Runs: `{_shown(args.out)}/sac_{args.sac_goal}_*`. Learning curves (training episodes, "
+        f"all starts): `{_shown(figure)}`.",
         "",
-        f"Evaluation on the same {n} held-out episodes (seeds {EVAL_SEED}..{EVAL_SEED + n - 1}), every policy with "
-        f"its own keypoints unless said; transfer gap of the simulated-keypoint policy (there minus with the "
-        f"DON): {gap:+.0%}. Success: `info['is_success']` at the episode's end.",
+        f"Evaluation on the same {n} held-out episodes (seeds {EVAL_SEED}..{EVAL_SEED + n - 1}) from two starts: "
+        "the task's own (the hand 0.45 m above the table, open) and the part in the closed hand (`hand_start="
+        "'in_hand'`); every policy with its own keypoints unless said; transfer gap of the simulated-keypoint "
+        f"policy (there minus with the DON): {gaps}. Success: `info['is_success']` at the episode's end.",
         "",
         TABLE_HEAD,
         *[_row(name, result) for name, result in results.items()],
@@ -405,9 +435,29 @@ def _positive(text: str) -> int:
     return value
 
 
+def _hand_starts(text: str) -> dict[str, float]:
+    """``in_hand=0.5,at_part=0.25`` -> {"in_hand": 0.5, "at_part": 0.25}; ``none`` -> {}."""
+    if text.strip().lower() == "none":
+        return {}
+    shares = {}
+    for item in text.split(","):
+        name, _, share = item.partition("=")
+        if name.strip() not in HAND_STARTS:
+            raise argparse.ArgumentTypeError(f"{item!r}: unknown hand start; expected one of {list(HAND_STARTS)}")
+        try:
+            shares[name.strip()] = float(share)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{item!r}: expected START=SHARE with a number") from None
+    try:
+        hand_start_shares(shares)
+    except DonGymError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return shares
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--only", action="append", choices=PARTS, help="run these parts (repeatable); records nothing")
+    parser.add_argument("--only", action="append", choices=PARTS, help="run these parts (repeatable)")
     parser.add_argument(
         "--keypoint-model", default=None, help=f"default: {PREFERRED_MODEL!r} if shipped, else 'oracle'"
     )
@@ -432,11 +482,16 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--cnn-size", type=_positive, nargs=2, default=[80, 60], metavar=("W", "H"))
     parser.add_argument("--sac-goal", choices=("lift", "place"), default="lift")
     parser.add_argument("--sac-envs", type=_positive, default=1)
-    parser.add_argument("--sac-steps", type=_positive, default=50_000, help="env steps, simulated and true keypoints")
-    parser.add_argument("--sac-don-steps", type=_positive, default=10_000, help="env steps, DON keypoints")
+    parser.add_argument("--sac-steps", type=_positive, default=40_000, help="env steps, simulated and true keypoints")
+    parser.add_argument("--sac-don-steps", type=_positive, default=15_000, help="env steps, DON keypoints")
     parser.add_argument("--sac-max-steps", type=_positive, default=50)
     parser.add_argument("--sac-learning-starts", type=int, default=rl.DEFAULT_ALGO_KWARGS["sac-her"]["learning_starts"])
     parser.add_argument("--sac-eval-episodes", type=_positive, default=20)
+    parser.add_argument(
+        "--sac-hand-starts", type=_hand_starts, default=DEFAULT_HAND_STARTS, metavar="START=SHARE,...",
+        help="shares of SAC training episodes that start with the hand at or on the part (HandStarts; "
+        f"'none' for none; default {','.join(f'{k}={v}' for k, v in DEFAULT_HAND_STARTS.items())})",
+    )  # fmt: skip
     parser.add_argument("--quick", action="store_true", help="tiny budgets into a temporary directory, records nothing")
     return parser
 
@@ -452,7 +507,7 @@ def main(argv: list[str] | None = None) -> int:
         args.ppo_envs, args.ppo_rollout, args.ppo_steps, args.ppo_eval_episodes, args.images_steps = 1, 8, 8, 2, 8
         args.sac_steps, args.sac_don_steps, args.sac_max_steps = 100, 20, 10
         args.sac_learning_starts, args.sac_eval_episodes = 20, 2
-    records = not (args.quick or args.only)
+    records = not args.quick
     scratch = Path(tempfile.mkdtemp(prefix="don_gym_rl_")) if args.quick else None
     args.out = args.out or (scratch / "runs" if scratch else DEFAULT_OUT)
     # Runs that record nothing keep their figures out of benchmarks/figures too.
@@ -471,14 +526,15 @@ def main(argv: list[str] | None = None) -> int:
 
     start = time.perf_counter()
     runners = {"throughput": run_throughput, "ppo": run_ppo, "images": run_images, "sac": run_sac}
-    sections, summary = [], {"keypoint_model": keypoint_model, "eval_seeds": [EVAL_SEED], "seed": args.seed}
+    sections, summary = {}, {"keypoint_model": keypoint_model, "eval_seeds": [EVAL_SEED], "seed": args.seed}
     for part in parts:
+        part_start = time.perf_counter()
         try:
             text, results = runners[part](args, keypoint_model)
         except DonGymError as exc:
             print(f"bench_rl: {part}: {exc}", file=sys.stderr)
             return 2
-        sections.append(text)
+        sections[part] = text + f"\n\nWall time of this part {(time.perf_counter() - part_start) / 60:.1f} min."
         summary |= results
     write_text_atomic(args.out / "summary.json", json.dumps(summary, indent=1) + "\n")
     oracle_note = (
@@ -492,13 +548,16 @@ def main(argv: list[str] | None = None) -> int:
         f"keypoints of `{keypoint_model}` (or its descriptor images).{oracle_note} Success = "
         "`info['is_success']` (grasp_and_place, or the lift goal) at the end of an episode, 95 % Wilson intervals."
     )
-    body = intro + "\n\n" + "\n\n".join(sections) + f"\n\nTotal wall time {(time.perf_counter() - start) / 60:.1f} min."
-    print(body)
+    print(intro + "\n\n" + "\n\n".join(sections.values()))
+    print(f"Total wall time {(time.perf_counter() - start) / 60:.1f} min")
     print(f"runs, figures and summary.json: {args.out} {args.figures}")
     if records:
-        record_section("rl", "RL baselines (stable-baselines3)", body)
+        for part, text in sections.items():
+            # A new section goes after the one of the part before it, keeping PARTS' order in RESULTS.md.
+            after = f"rl-{PARTS[PARTS.index(part) - 1]}" if PARTS.index(part) else None
+            record_section(f"rl-{part}", PART_TITLES[part], intro + "\n\n" + text, after=after)
     else:
-        print("(--quick or --only: RESULTS.md not updated)")
+        print("(--quick: RESULTS.md not updated)")
     return 0
 
 

@@ -1,9 +1,9 @@
 """Reproduce the networks shipped in don_gym/shipped from scratch, and record the run.
 
 For each object (toolcap, shaft): build a dataset (640x480, d435 sensor, seed 0), train one network per
-method (resnet-lite, 128x128 object-centred crops, fixed seed), copy its final weights to
-``don_gym/shipped/<object>/<method>.safetensors`` and record its training time, images/s and final loss
-in benchmarks/RESULTS.md.
+method (resnet-lite, object-centred crops: 128x128 for the toolcap, 256x192 for the shaft; fixed seed), copy
+its final weights to ``don_gym/shipped/<object>/<method>.safetensors`` and record its training time,
+images/s and final loss in benchmarks/RESULTS.md.
 
     python benchmarks/train_shipped.py            # the shipped recipe
     python benchmarks/train_shipped.py --quick    # a smoke run into a temp dir (no copy)
@@ -39,6 +39,7 @@ from don_gym.zoo import SHIPPED_DIR  # noqa: E402
 
 OBJECTS = ("toolcap", "shaft")
 METHODS = ("supervised-edge", "supervised-mask", "self-supervised")
+CROPS = {"toolcap": (128, 128), "shaft": (256, 192)}
 
 
 def restamp_shipped(object_name: str, method: str, data: Path) -> None:
@@ -59,14 +60,18 @@ def main() -> None:
     # about 30 px at 320x240, four cells of the network's output stride 8, too few to tell its flange end
     # from its open end; at 640x480 it spans about 60 px.
     parser.add_argument("--size", type=parse_size, default=(640, 480), help="image WIDTHxHEIGHT (default 640x480)")
-    parser.add_argument("--crop", type=parse_size, default=(128, 128), help="training crop WIDTHxHEIGHT")
+    # The shaft spans a median 143 px and up to 230 px at 640x480: a 128x128 crop often holds one end only, and
+    # a network trained on such crops cannot tell its ends apart (p90 ~65 mm); the toolcap spans ~60 px.
+    parser.add_argument(
+        "--crop", type=parse_size, default=None, help="training crop WIDTHxHEIGHT (default: per object, see CROPS)"
+    )
     parser.add_argument("--steps", type=int, default=6000)
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--threads", type=int, default=1, help="torch threads per training (1: see TrainConfig)")
     # Batches built in worker processes do not change the curve (don_gym.train), only the time: the
     # loading share of a step was a third at 256x192 crops without them.
     parser.add_argument("--workers", type=int, default=2, help="processes that build the batches (0: in the loop)")
-    parser.add_argument("--objects", nargs="+", default=list(OBJECTS))
+    parser.add_argument("--objects", nargs="+", choices=OBJECTS, default=list(OBJECTS))
     parser.add_argument("--methods", nargs="+", default=list(METHODS))
     parser.add_argument("--quick", action="store_true", help="tiny smoke run in a temp dir; copies nothing")
     parser.add_argument(
@@ -84,6 +89,7 @@ def main() -> None:
         args.scenes, args.frames, args.steps = 2, 6, 20
     rows = []
     shipped = []
+    crops = {name: args.crop or CROPS[name] for name in args.objects}
     for object_name in args.objects:
         data = work / f"data_{object_name}"
         config = DatasetConfig(
@@ -102,7 +108,7 @@ def main() -> None:
                     steps=args.steps,
                     batch_size=args.batch_size,
                     seed=0,
-                    crop_size=args.crop,
+                    crop_size=crops[object_name],
                     threads=args.threads,
                     workers=args.workers,
                     checkpoint_every=max(1, args.steps // 4),
@@ -124,10 +130,10 @@ def main() -> None:
                 restamp_shipped(object_name, method, data)
                 shipped.append(f"{object_name}/{method}")
     width, height = args.size
-    crop_w, crop_h = args.crop
+    crop_text = ", ".join(f"{w}x{h} ({name})" for name, (w, h) in crops.items())
     body = f"""Datasets: {args.scenes} scenes x {args.frames} frames, {width}x{height}, sensor `d435`, TinyRenderer,
 seed 0. Training: `resnet-lite`, {args.steps} steps, batch {args.batch_size} (images, or image pairs for
-self-supervised), {crop_w}x{crop_h} object-centred crops, Adam lr 1e-3 x0.9 every 250 steps, seed 0,
+self-supervised), {crop_text} object-centred crops, Adam lr 1e-3 x0.9 every 250 steps, seed 0,
 {args.threads} torch thread(s), {args.workers} loader worker(s). Final loss = mean of the last 5% of steps
 (the two methods' losses are on different scales and not comparable with each other). Minutes and images/s add up every
 session of a resumed run; n/a marks a run resumed from a state saved before don_gym recorded them.

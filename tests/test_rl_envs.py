@@ -25,6 +25,7 @@ from don_gym.sim.task import PLACE_TOLERANCE_M, seated_pose
 from don_gym.wrappers import (
     DescriptorImage,
     DescriptorObservation,
+    HandStarts,
     KeypointGoal,
     KeypointNoiseModel,
     KeypointObservation,
@@ -186,6 +187,35 @@ def test_goal_env_passes_sb3_check_env_and_rewards_agree_with_success(toolcap) -
     grasp.close()
 
 
+def test_hand_starts_put_the_hand_at_or_on_the_part_and_the_part_lifts_from_the_hand(toolcap) -> None:
+    env = gym.make("DONToolcapPick-v0", control="ee", image_size=None, max_steps=20)
+    u = env.unwrapped
+    _, info = env.reset(seed=3, options={"hand_start": "above_part"})
+    grasp_point = u.oracle_action()[:3]
+    tcp = u.robot.tcp_pose()[:3, 3]
+    assert info["hand_start"] == "above_part"
+    np.testing.assert_allclose(tcp[:2], grasp_point[:2], atol=0.01)
+    assert tcp[2] > grasp_point[2] + 0.08 and u.robot.gripper_width() > 0.06  # open, above the part
+    _, info = env.reset(seed=3, options={"hand_start": "in_hand"})
+    z_start = info["T_world_object"][2, 3]
+    assert all(u.robot.contacts(u.task).fingers) and u.robot.gripper_width() < 0.05
+    for _ in range(3):  # up, gripper kept closed: the part comes along
+        *_, info = env.step(np.array([0.0, 0.0, 1.0, 0.0, -1.0], dtype=np.float32))
+    assert info["lifted"] and info["T_world_object"][2, 3] > z_start + 0.05
+    # The task's own start is unchanged by the option's existence.
+    obs_default, _ = env.reset(seed=3)
+    obs_observe, _ = env.reset(seed=3, options={"hand_start": "observe"})
+    np.testing.assert_allclose(obs_default["ee_pose"], obs_observe["ee_pose"], atol=1e-6)
+    env.close()
+
+    starts = HandStarts(gym.make("DONToolcapPick-v0", control="ee", image_size=None), {"in_hand": 0.5})
+    drawn = [starts.reset(seed=seed)[1]["hand_start"] for seed in range(8)]
+    assert set(drawn) == {"in_hand", "observe"}
+    assert drawn == [starts.reset(seed=seed)[1]["hand_start"] for seed in range(8)]  # seeded
+    assert starts.reset(seed=0, options={"hand_start": "at_part"})[1]["hand_start"] == "at_part"
+    starts.close()
+
+
 def test_sac_her_trains_writes_its_run_and_resumes(tmp_path: Path) -> None:
     env_kwargs = {"keypoints": "true", "goal": "lift", "max_steps": 10}
     algo_kwargs = {
@@ -291,5 +321,15 @@ def test_bad_rl_inputs_give_one_line_errors(tmp_path: Path) -> None:
         rl.make_sac_env(keypoints="camera")
     with pytest.raises(DonGymError, match="goal='stack'"):
         rl.make_sac_env(goal="stack", keypoints="true")
+    with pytest.raises(DonGymError, match="'hand_start'"):
+        gym.make("DONToolcapPick-v0", control="ee", image_size=None).reset(options={"hand_start": "flying"})
+    with pytest.raises(DonGymError, match="needs control='ee'"):
+        gym.make("DONToolcapPick-v0", image_size=None).reset(options={"hand_start": "in_hand"})
+    with pytest.raises(DonGymError, match="'in_the_air' is unknown"):
+        rl.make_sac_env(keypoints="true", hand_starts={"in_the_air": 0.5})
+    with pytest.raises(DonGymError, match="add up to 1.5"):
+        rl.make_sac_env(keypoints="true", hand_starts={"in_hand": 0.75, "at_part": 0.75})
+    with pytest.raises(DonGymError, match=r"shares\['in_hand'\]=-0.1"):
+        rl.make_sac_env(keypoints="true", hand_starts={"in_hand": -0.1})
     with pytest.raises(DonGymError, match="vectorize='batched'"):
         rl.make_vec_env("ppo", 2, 0, {}, vectorize="batched")

@@ -32,7 +32,7 @@ from don_gym.descriptor_sources import (
     reference_descriptors_for,
 )
 from don_gym.wrappers.descriptors import DESCRIPTOR_BOUND, DescriptorObservation
-from don_gym.wrappers.goals import KeypointGoal
+from don_gym.wrappers.goals import HandStarts, KeypointGoal
 from don_gym.wrappers.images import DescriptorImage
 from don_gym.wrappers.keypoints import KeypointObservation
 from don_gym.wrappers.rl import KeypointFeatures, KeypointGraspAction
@@ -46,6 +46,7 @@ __all__ = [
     "DescriptorObservation",
     "DescriptorSource",
     "KeypointFeatures",
+    "HandStarts",
     "KeypointGoal",
     "KeypointGraspAction",
     "KeypointNoiseModel",

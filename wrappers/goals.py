@@ -4,6 +4,8 @@
 :class:`~don_gym.wrappers.SimulatedKeypoints`) into the ``observation`` / ``achieved_goal`` /
 ``desired_goal`` dict that stable-baselines3's ``HerReplayBuffer`` expects, goals being the part's two
 axis-end keypoints (6 numbers, world metres), and gives the vectorised ``compute_reward`` HER relabels with.
+:class:`HandStarts` starts a share of (training) episodes with the hand at or on the part, HER's device for
+tasks a random policy never completes.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from gymnasium import spaces
 
 from don_gym.descriptor_sources import DEFAULT_AXIS_FRACTIONS, axis_end_targets, env_object_model
 from don_gym.errors import DonGymError
+from don_gym.sim.env import HAND_STARTS
 from don_gym.sim.task import seated_pose, within_placement_tolerance
 from don_gym.wrappers.keypoints import POINT_BOUND_M
 from don_gym.wrappers.rl import KeypointFeatures
@@ -128,3 +131,53 @@ class KeypointGoal(gym.Wrapper, gym.utils.RecordConstructorArgs):
             info["is_success"] = bool(reward == 0.0 and info.get("lifted", False))
             terminated = bool(terminated or info["is_success"])
         return observation, reward, terminated, truncated, info
+
+
+def hand_start_shares(shares: dict[str, float]) -> dict[str, float]:
+    """Shares of :data:`~don_gym.sim.env.HAND_STARTS` (non-negative, adding up to at most 1) completed with
+    ``"observe"`` (the task's start) to a distribution that adds up to 1; DonGymError naming the bad entry."""
+    if not isinstance(shares, dict) or not shares:
+        raise DonGymError(f"shares={shares!r}: expected a dict such as {{'in_hand': 0.5}}")
+    for name, share in shares.items():
+        if name not in HAND_STARTS:
+            raise DonGymError(f"shares: hand start {name!r} is unknown; expected one of {list(HAND_STARTS)}")
+        if not isinstance(share, (int, float)) or isinstance(share, bool) or not np.isfinite(share) or share < 0:
+            raise DonGymError(f"shares[{name!r}]={share!r}: expected a non-negative number")
+    total = float(sum(shares.values()))
+    if total > 1.0 + 1e-9:
+        raise DonGymError(f"shares={shares!r} add up to {total:.3g}; expected at most 1 (the rest: the task start)")
+    full = {name: float(share) for name, share in shares.items()}
+    full["observe"] = full.get("observe", 0.0) + max(0.0, 1.0 - total)
+    return {name: share / sum(full.values()) for name, share in full.items()}
+
+
+class HandStarts(gym.Wrapper, gym.utils.RecordConstructorArgs):
+    """Start each episode with the hand where ``shares`` say: a share of the resets gets
+    ``options["hand_start"]`` (see :data:`don_gym.sim.env.HAND_STARTS`: ``"above_part"``, ``"at_part"``,
+    ``"in_hand"``), the rest the task's own start (``"observe"``).
+
+    Why: with sparse rewards, a policy that starts 0.45 m above the part and moves at random practically
+    never closes the gripper on it (the fingers need ~15 steps to close), so hindsight relabelling has no
+    lifted part to learn from; starting some training episodes with the part already between the fingers
+    is how the HER paper trains pick-and-place. For training only: evaluate on the task's start.
+
+    The start is drawn from a generator seeded by ``reset(seed=...)``, so two runs (or two policies
+    evaluated) with the same seeds get the same starts. A reset whose options already name a
+    ``hand_start`` keeps it. ``info["hand_start"]`` tells which start an episode got.
+    """
+
+    def __init__(self, env: gym.Env, shares: dict[str, float]) -> None:
+        gym.utils.RecordConstructorArgs.__init__(self, shares=shares)
+        gym.Wrapper.__init__(self, env)
+        self.shares = hand_start_shares(shares)
+        self._names = list(self.shares)
+        self._probabilities = np.array([self.shares[n] for n in self._names])
+        self._rng = np.random.default_rng()
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        options = dict(options or {})
+        if "hand_start" not in options:
+            options["hand_start"] = self._names[int(self._rng.choice(len(self._names), p=self._probabilities))]
+        return self.env.reset(seed=seed, options=options)

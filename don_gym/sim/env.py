@@ -20,7 +20,7 @@ from don_gym.geometry import CameraIntrinsics, make_transform
 from don_gym.objects import ObjectModel, load_object
 from don_gym.sim.bullet import Bullet, silence_c_stdout
 from don_gym.sim.camera import check_renderer, look_at_camera_pose, render_camera, specular_map
-from don_gym.sim.robot import Panda, wrap_angle
+from don_gym.sim.robot import EE_WRIST_MAX_RAD, Panda, wrap_angle
 from don_gym.sim.script import GraspPlaceScript
 from don_gym.sim.sensor import get_sensor, sample_calibration_error, simulate_depth
 from don_gym.sim.task import (
@@ -37,7 +37,11 @@ from don_gym.sim.task import (
 
 CONTROL_MODES = ("grasp", "ee")
 #: Keys of ``reset(options=...)``.
-RESET_OPTIONS = ("pose_id",)
+RESET_OPTIONS = ("pose_id", "hand_start")
+#: ``reset(options={"hand_start": ...})``: where an ee-mode episode starts the hand. "observe": the wrist
+#: camera's observation pose (the task); the others run the scripted grasp with the true pose up to a phase,
+#: the hand open 12 cm above the part, open around it, or closed on it (starts for learning, as in HER).
+HAND_STARTS = {"observe": None, "above_part": "approach", "at_part": "descend", "in_hand": "close"}
 TIME_STEP_S = 1.0 / 250.0
 SOLVER_ITERATIONS = 150
 #: ee mode: 25 Hz control, 10 physics steps of 4 ms per env step.
@@ -141,7 +145,10 @@ class PickPlaceEnv(gym.Env):
     The part lies settled at a uniformly random position in the workspace with a uniformly random
     yaw, or at one of 8 fixed poses with ``reset(options={"pose_id": k})``, k in 0..7. The wrist
     camera looks straight down from 0.45 m above the workspace centre, the gripper open. The sensor's
-    hand-eye calibration error is drawn per episode.
+    hand-eye calibration error is drawn per episode. In ee mode ``reset(options={"hand_start": ...})``
+    starts the hand elsewhere (:data:`HAND_STARTS`): the scripted grasp, run with the true pose, stops
+    with the hand open 12 cm above the part (``"above_part"``), open around it (``"at_part"``) or closed
+    on it (``"in_hand"``); a start for learning (:class:`~don_gym.wrappers.HandStarts`), not the task.
 
     ## Episode End
     ``control="grasp"``: terminated after its one step. ``control="ee"``: terminated on success
@@ -167,8 +174,8 @@ class PickPlaceEnv(gym.Env):
     ## Info
     ``T_world_object``, ``T_world_camera`` (true), ``T_camera_reportedcamera`` (calibration error),
     ``outcome`` (one of :data:`~don_gym.sim.task.OUTCOMES`), ``is_success``, ``pose_id``, ``sensor``,
-    ``renderer`` (the one that ran); after a step also ``lifted``, ``placement_distance_m``,
-    ``placement_axis_error_rad``, and in grasp mode ``sim_time_s``, ``grasp_width_m``,
+    ``renderer`` (the one that ran), after a reset ``hand_start``; after a step also ``lifted``,
+    ``placement_distance_m``, ``placement_axis_error_rad``, and in grasp mode ``sim_time_s``, ``grasp_width_m``,
     ``release_width_m`` (None for a phase the script did not reach).
     """
 
@@ -301,6 +308,11 @@ class PickPlaceEnv(gym.Env):
         pose_id = options.get("pose_id")
         if pose_id is not None and (not _is_int(pose_id) or not 0 <= pose_id < len(FIXED_POSES)):
             raise DonGymError(f"options['pose_id']={pose_id!r}: expected an integer 0..{len(FIXED_POSES) - 1}")
+        hand_start = options.get("hand_start", "observe")
+        if not isinstance(hand_start, str) or hand_start not in HAND_STARTS:
+            raise DonGymError(f"options['hand_start']={hand_start!r}: expected one of {list(HAND_STARTS)}")
+        if hand_start != "observe" and self.control != "ee":
+            raise DonGymError(f"options['hand_start']={hand_start!r} needs control='ee' (grasp mode starts observing)")
         super().reset(seed=None if seed is None else int(seed))  # only once everything is checked
         if pose_id is not None:
             x, y, yaw = FIXED_POSES[int(pose_id)]
@@ -323,7 +335,13 @@ class PickPlaceEnv(gym.Env):
         self._steps = 0
         self._lifted = False
         self._ee_yaw_rad = float(OBSERVATION_YAW_RAD)
-        return self._observation(), self._info() | {"outcome": "fail", "is_success": False}
+        if HAND_STARTS[hand_start] is not None:
+            action = self.oracle_action()
+            script = GraspPlaceScript(self.sim, self.robot, self.task)
+            yaw = script.grasp_start(action[:3], float(action[3]), HAND_STARTS[hand_start], EE_WRIST_MAX_RAD)
+            self._ee_yaw_rad = yaw
+        info = self._info() | {"outcome": "fail", "is_success": False, "hand_start": hand_start}
+        return self._observation(), info
 
     # ------------------------------------------------------------------ step
     def step(self, action):

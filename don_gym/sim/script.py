@@ -42,6 +42,8 @@ FINGER_CLEARANCE_M = 0.004
 #: of fully open, or fully open with the part stuck to one pad); the script then squeezes and opens
 #: again, at most RELEASE_RETRIES times.
 RELEASE_RETRIES = 3
+#: The grasp's first phases, in order (:meth:`GraspPlaceScript.grasp_start` stops after one of them).
+GRASP_PHASES = ("approach", "descend", "close")
 #: Margin (rad) kept from joint 7's limits when choosing wrist angles.
 WRIST_MARGIN_RAD = 0.08
 
@@ -191,6 +193,40 @@ class GraspPlaceScript:
         _, wrist_grasp, wrist_place = best
         return float(np.clip(wrist_grasp, limit_lo, limit_hi)), float(np.clip(wrist_place, limit_lo, limit_hi))
 
+    def _grasp_phases(self, grasp: np.ndarray, wrist_rad: float, last: str) -> None:
+        """The grasp's first phases of :data:`GRASP_PHASES` up to ``last``: above the grasp point with the
+        gripper open, down to it (stopping if a finger touches the table), the gripper closed."""
+        robot, task = self.robot, self.task
+
+        def touching_table() -> bool:
+            return any(robot.finger_contacts(task.table_id))
+
+        self.trace.phases.append("approach")
+        robot.command_gripper(MAX_WIDTH_M)
+        self.move(np.array([grasp[0], grasp[1], TABLE_TOP_Z_M + APPROACH_HEIGHT_M]), wrist_rad, FREE_SPEED_M_S)
+        if last == "approach":
+            return
+        self.trace.phases.append("descend")
+        self.move(grasp, wrist_rad, APPROACH_SPEED_M_S, guard=touching_table)
+        if last == "descend":
+            return
+        self.trace.phases.append("close")
+        self.trace.grasp_width_m = self.gripper(0.0)
+
+    def grasp_start(self, grasp_xyz: np.ndarray, axis_yaw_rad: float, last: str, wrist_limit_rad: float) -> float:
+        """Run the grasp's phases up to ``last`` (one of :data:`GRASP_PHASES`) and stop there: a start state
+        for learning (the hand open above the part, open around it, or closed on it). Of the two hand yaws
+        across the axis it takes the one whose joint-7 angle is nearer the middle, kept within
+        ``wrist_limit_rad``. Returns the hand yaw (rad)."""
+        if last not in GRASP_PHASES:
+            raise ValueError(f"last={last!r}: expected one of {list(GRASP_PHASES)}")
+        grasp = np.asarray(grasp_xyz, dtype=np.float64).copy()
+        grasp[2] = max(grasp[2], TABLE_TOP_Z_M + MIN_TCP_HEIGHT_M)
+        wrist = min((self._wrist_for(grasp, yaw) for yaw in (axis_yaw_rad, axis_yaw_rad + np.pi)), key=abs)
+        wrist = float(np.clip(wrist, -wrist_limit_rad, wrist_limit_rad))
+        self._grasp_phases(grasp, wrist, last)
+        return self._yaw_for(grasp, wrist)
+
     # ---------------------------------------------------------------- run
     def run(self, grasp_xyz: np.ndarray, axis_yaw_rad: float) -> ScriptTrace:
         """Execute the whole grasp-and-place for the believed grasp point and +axis yaw."""
@@ -199,18 +235,7 @@ class GraspPlaceScript:
         grasp = np.asarray(grasp_xyz, dtype=np.float64).copy()
         grasp[2] = max(grasp[2], TABLE_TOP_Z_M + MIN_TCP_HEIGHT_M)
         wrist_grasp, wrist_place = self.choose_wrists(grasp, axis_yaw_rad)
-        above_grasp = np.array([grasp[0], grasp[1], TABLE_TOP_Z_M + APPROACH_HEIGHT_M])
-
-        def touching_table() -> bool:
-            return any(robot.finger_contacts(task.table_id))
-
-        trace.phases.append("approach")
-        robot.command_gripper(MAX_WIDTH_M)
-        self.move(above_grasp, wrist_grasp, FREE_SPEED_M_S)
-        trace.phases.append("descend")
-        self.move(grasp, wrist_grasp, APPROACH_SPEED_M_S, guard=touching_table)
-        trace.phases.append("close")
-        trace.grasp_width_m = self.gripper(0.0)
+        self._grasp_phases(grasp, wrist_grasp, "close")
         trace.phases.append("lift")
         lift_to = np.array([grasp[0], grasp[1], TABLE_TOP_Z_M + CARRY_HEIGHT_M])
         self.move(lift_to, wrist_grasp, LIFT_SPEED_M_S)
