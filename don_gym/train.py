@@ -331,6 +331,7 @@ def checkpoint_metadata(
             "seed": config.seed,
             "lr": config.learning_rate(),
             "batch_size": config.batch_size,
+            "crop_size": list(config.crop_size) if config.crop_size else None,
             "dataset_scenes": int(dataset_info["scenes"]),
             "dataset_frames_per_scene": int(dataset_info["frames_per_scene"]),
             "dataset_seed": int(dataset_info["seed"]),
