@@ -61,9 +61,26 @@ def _git(*args: str) -> str:
     return subprocess.run(["git", *args], cwd=REPO_ROOT, capture_output=True, text=True, check=True, timeout=30).stdout
 
 
+#: The code state :func:`freeze_commit_description` saw at a run's start; None: look each time.
+_frozen_commit: str | None = None
+
+
+def freeze_commit_description() -> str:
+    """Look at the code state now and let :func:`commit_description` answer that for the rest of the run: a
+    benchmark that writes generated blocks into README.md or docs/ would otherwise find its own output
+    among the uncommitted changes of the sections it records after them."""
+    global _frozen_commit
+    _frozen_commit = None
+    _frozen_commit = commit_description()
+    return _frozen_commit
+
+
 def commit_description() -> str:
     """``<short hash>``, plus `` + uncommitted changes`` when tracked files other than the benchmarks'
-    own outputs differ from it; ``unknown`` without git or outside a repository."""
+    own outputs differ from it; ``unknown`` without git or outside a repository. After
+    :func:`freeze_commit_description`, what it saw."""
+    if _frozen_commit is not None:
+        return _frozen_commit
     try:
         commit = _git("rev-parse", "--short", "HEAD").strip()
         status = _git("status", "--porcelain", "-z", "--untracked-files=no")

@@ -33,6 +33,7 @@ from _results import (  # noqa: E402
     REPO_ROOT,
     command_line,
     commit_description,
+    freeze_commit_description,
     machine_description,
     record_section,
     replace_block,
@@ -689,6 +690,7 @@ def main() -> None:
     parser.add_argument("--only", choices=("tracking", "grasp"), default=None)
     parser.add_argument("--quick", action="store_true", help="tiny smoke run in a temp dir; records nothing")
     args = parser.parse_args()
+    freeze_commit_description()  # before this run writes README.md and docs/reproduction.md
     args.objects = [o for o in OBJECTS if o in args.objects]  # the headline object first, each once
     torch.set_num_threads(1)
     preflight(args)

@@ -37,6 +37,13 @@ def test_section_records_the_commit_and_uncommitted_changes(tmp_path: Path, monk
     # ... an edited or renamed tracked file does.
     git("mv", "code.py", "moved.py")
     assert _results.commit_description() == f"{commit} + uncommitted changes"
+    # A run that froze the state at its start names that state, whatever it edits afterwards.
+    git("mv", "moved.py", "code.py")
+    monkeypatch.setattr(_results, "_frozen_commit", None)
+    assert _results.freeze_commit_description() == commit
+    (tmp_path / "code.py").write_text("edited by the run")
+    assert _results.commit_description() == commit
+    monkeypatch.setattr(_results, "_frozen_commit", None)
 
     monkeypatch.setenv("PATH", str(tmp_path / "no-bin"))  # no git at all
     assert _results.commit_description() == "unknown"
