@@ -21,7 +21,7 @@ periodic saves into ``--out`` (``runs/rl`` by default, a temporary directory wit
 of ``benchmarks/RESULTS.md`` per part that ran (``rl-throughput``, ``rl-ppo``, ``rl-images``, ``rl-sac``;
 not with ``--quick``).
 
-    python benchmarks/bench_rl.py                      # full CPU run, all parts (~1.5-2 h on 2 cores)
+    python benchmarks/bench_rl.py                      # full CPU run, all parts (~2.5 h on 2 cores)
     python benchmarks/bench_rl.py --only sac --resume  # one part, continuing its runs in runs/rl
     python benchmarks/bench_rl.py --quick              # smoke run of every part (a few minutes), records nothing
 

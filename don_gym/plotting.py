@@ -389,21 +389,26 @@ def plot_learning_curve(
     ``window`` episodes (``LearningCurve.rolling(window)`` of :mod:`don_gym.agents.rl`);
     ``reference_lines``: (label, success rate, mean return) of baselines drawn as dashed lines.
     """
-    fig = _new_figure(10, 4.4)
+    entries = len(curves) + len(reference_lines)
+    # Long labels (the baselines' names) fit two to a row; one legend under both plots hides no line.
+    columns = 2 if max((len(label) for label, *_ in [*curves, *reference_lines]), default=0) > 35 else 3
+    rows = -(-entries // columns)
+    fig = _new_figure(10, 3.6 + 0.22 * rows)
     ax_success, ax_return = fig.subplots(1, 2)
     for label, (steps, success, returns) in curves:
         ax_success.plot(steps, success, label=label)
         ax_return.plot(steps, returns, label=label)
+    # Reference lines take the colours the curves leave free, then repeat them with another dash pattern,
+    # so that no baseline shares a curve's colour.
+    free = max(1, 10 - len(curves))
     for k, (label, success_rate, mean_return) in enumerate(reference_lines):
-        colour = f"C{k + len(curves)}"
-        ax_success.axhline(success_rate, linestyle="--", color=colour, label=label)
-        ax_return.axhline(mean_return, linestyle="--", color=colour, label=label)
+        style = {"linestyle": ("--", ":", "-.")[(k // free) % 3], "color": f"C{len(curves) + k % free}"}
+        ax_success.axhline(success_rate, label=label, **style)
+        ax_return.axhline(mean_return, label=label, **style)
     ax_success.set(xlabel="env steps", ylabel=f"success rate (last {window} episodes)", ylim=(-0.02, 1.02))
     ax_return.set(xlabel="env steps", ylabel=f"episode return (mean of last {window})")
     handles, labels = ax_success.get_legend_handles_labels()
-    rows = (len(labels) + 2) // 3
-    # One legend under both plots, so that no line is hidden behind it.
-    fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=8, frameon=False)
+    fig.legend(handles, labels, loc="lower center", ncol=columns, fontsize=8, frameon=False)
     fig.suptitle(title)
-    fig.tight_layout(rect=(0.0, 0.06 * rows, 1.0, 1.0))
+    fig.tight_layout(rect=(0.0, min(0.6, 0.22 * rows / (3.6 + 0.22 * rows) + 0.02), 1.0, 1.0))
     return _save(fig, path, dpi=110)
