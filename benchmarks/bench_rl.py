@@ -376,10 +376,12 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         f"SAC+HER, control='ee', goal '{args.sac_goal}', keypoints: simulated / {keypoint_model} / true",
         reference_lines=[(f"eval: {name}", r.success_rate, r.mean_return) for name, r in results.items()],
     )
-    gaps = ", ".join(
-        f"{start} {results[f'{start}: SAC+HER, simulated keypoints'].success_rate - results[f'{start}: SAC+HER trained on simulated keypoints, run with the DON'].success_rate:+.0%}"  # noqa: E501
-        for start in SAC_EVAL_STARTS
-    )
+
+    def transfer_gap(start: str) -> float:
+        on_model = results[f"{start}: SAC+HER, simulated keypoints"].success_rate
+        return on_model - results[f"{start}: SAC+HER trained on simulated keypoints, run with the DON"].success_rate
+
+    gaps = ", ".join(f"{start} {transfer_gap(start):+.0%}" for start in SAC_EVAL_STARTS)
     starts_text = (
         "training episodes start with the hand "
         + ", ".join(f"{name} {share:.0%}" for name, share in args.sac_hand_starts.items())
