@@ -55,7 +55,6 @@ from don_gym.errors import DonGymError  # noqa: E402
 from don_gym.io import write_text_atomic  # noqa: E402
 from don_gym.objects import load_object  # noqa: E402
 from don_gym.plotting import plot_learning_curve  # noqa: E402
-from don_gym.sim.env import HAND_STARTS  # noqa: E402
 from don_gym.stats import wilson_interval  # noqa: E402
 from don_gym.wrappers.goals import hand_start_shares  # noqa: E402
 from don_gym.zoo import read_don_metadata, shipped_names  # noqa: E402
@@ -444,13 +443,13 @@ def _hand_starts(text: str) -> dict[str, float]:
     shares = {}
     for item in text.split(","):
         name, _, share = item.partition("=")
-        if name.strip() not in HAND_STARTS:
-            raise argparse.ArgumentTypeError(f"{item!r}: unknown hand start; expected one of {list(HAND_STARTS)}")
+        if name.strip() in shares:
+            raise argparse.ArgumentTypeError(f"{item!r}: hand start {name.strip()!r} given twice")
         try:
             shares[name.strip()] = float(share)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{item!r}: expected START=SHARE with a number") from None
-    try:
+    try:  # names, ranges and the total, as the wrapper checks them
         hand_start_shares(shares)
     except DonGymError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
@@ -526,6 +525,16 @@ def main(argv: list[str] | None = None) -> int:
     if args.device is None:
         args.device = "cuda" if torch.cuda.is_available() else "cpu"
 
+    # Parts run on their own (--only) add to the summary of the runs in --out instead of replacing it; read
+    # before any training, so that an unreadable one stops the run now rather than after hours.
+    summary_path = args.out / "summary.json"
+    try:
+        previous_summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+        if not isinstance(previous_summary, dict):
+            raise ValueError("expected a JSON object")
+    except (OSError, ValueError) as exc:
+        parser.error(f"{summary_path}: not a readable summary ({exc}); move it away or pass another --out")
+
     start = time.perf_counter()
     runners = {"throughput": run_throughput, "ppo": run_ppo, "images": run_images, "sac": run_sac}
     sections, summary = {}, {"keypoint_model": keypoint_model, "eval_seeds": [EVAL_SEED], "seed": args.seed}
@@ -538,7 +547,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         sections[part] = text + f"\n\nWall time of this part {(time.perf_counter() - part_start) / 60:.1f} min."
         summary |= results
-    write_text_atomic(args.out / "summary.json", json.dumps(summary, indent=1) + "\n")
+    write_text_atomic(summary_path, json.dumps(previous_summary | summary, indent=1) + "\n")
     oracle_note = (
         " The keypoints come from the oracle (descriptors rendered from the true pose): this checks the "
         "pipeline, it is not a perception result."

@@ -148,7 +148,8 @@ def hand_start_shares(shares: dict[str, float]) -> dict[str, float]:
         raise DonGymError(f"shares={shares!r} add up to {total:.3g}; expected at most 1 (the rest: the task start)")
     full = {name: float(share) for name, share in shares.items()}
     full["observe"] = full.get("observe", 0.0) + max(0.0, 1.0 - total)
-    return {name: share / sum(full.values()) for name, share in full.items()}
+    full_total = sum(full.values())  # 1 up to rounding: normalised so that sampling accepts it
+    return {name: share / full_total for name, share in full.items()}
 
 
 class HandStarts(gym.Wrapper, gym.utils.RecordConstructorArgs):
