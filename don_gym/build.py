@@ -292,19 +292,25 @@ def _check_field_fits(field: DescriptorField, computed: DescriptorField, config:
     for this part, within :data:`~don_gym.descriptors.FIELD_MATCH_ATOL`."""
     if (field.dim, field.symmetric) != (config.descriptor_dim, config.symmetric):
         problem = (
-            f"dim {field.dim}, symmetric {field.symmetric}; asked: dim {config.descriptor_dim}, "
-            f"symmetric {config.symmetric}"
+            f"dim {field.dim}, symmetric {field.symmetric}; asked: dim {config.descriptor_dim} (--dim), "
+            f"symmetric {config.symmetric} (--no-symmetry)"
         )
     elif field.n_vertices != computed.n_vertices:
-        problem = f"a mesh of {field.n_vertices} vertices; {config.object!r} has {computed.n_vertices}"
+        problem = f"a mesh of {field.n_vertices} vertices; {config.object!r} (--object) has {computed.n_vertices}"
     else:
         difference = field.max_difference(computed)
         if difference <= FIELD_MATCH_ATOL:
             return
-        problem = f"it differs from {config.object!r}'s by {difference:.3g}, tolerance {FIELD_MATCH_ATOL:g}"
+        problem = (
+            f"it differs from the field of {config.object!r} (--object) by {difference:.3g}, "
+            f"tolerance {FIELD_MATCH_ATOL:g}"
+        )
+    # Worded like check_dataset_identity's refusal: which of two racing writers loses decides which
+    # of the two a user sees, and both say the same thing.
     raise DatasetError(
-        f"{out_dir / FIELD_FILE}: holds the descriptor field of another dataset ({problem}) and no {DATASET_FILE}: "
-        "another build is starting there or stopped early; pass --overwrite to replace it or use another directory"
+        f"{out_dir}: holds a different dataset (its {FIELD_FILE} is the descriptor field of another part or "
+        f"options: {problem}) and no {DATASET_FILE} yet: another build is starting there or stopped early; "
+        "pass --overwrite to replace it or use another directory"
     )
 
 

@@ -408,6 +408,23 @@ def test_a_dataset_from_another_machine_resumes_and_another_field_is_refused(
     assert json.loads((fresh / "dataset.json").read_text())["descriptor_field_hash"] == published
 
 
+def test_another_parts_field_without_dataset_json_is_refused_like_a_different_dataset(
+    tmp_path: Path, capsys
+) -> None:
+    """The window in which a racing build of another part has published its field but not yet its
+    dataset.json: the refusal says what the other one says (the two writers' test sees either)."""
+    from don_gym.descriptors import embed
+    from don_gym.objects import load_object
+
+    out = tmp_path / "ds"
+    out.mkdir()
+    embed(load_object("shaft"), dim=3, symmetric=True).save(out / "descriptor_field.npz")
+    before = _snapshot(out)
+    code = main(["build-dataset", *TINY_ARGS, "--object", "toolcap", "--out", str(out)])
+    _assert_one_line_error(code, capsys.readouterr().err, "holds a different dataset", "--object", "no dataset.json")
+    assert _snapshot(out) == before
+
+
 def test_a_replaced_field_file_is_refused(dataset: Path) -> None:
     """dataset.json names its field file's exact content: the scenes' targets were rendered from it."""
     from don_gym.descriptors import embed
