@@ -408,9 +408,7 @@ def test_a_dataset_from_another_machine_resumes_and_another_field_is_refused(
     assert json.loads((fresh / "dataset.json").read_text())["descriptor_field_hash"] == published
 
 
-def test_another_parts_field_without_dataset_json_is_refused_like_a_different_dataset(
-    tmp_path: Path, capsys
-) -> None:
+def test_another_parts_field_without_dataset_json_is_refused_like_a_different_dataset(tmp_path: Path, capsys) -> None:
     """The window in which a racing build of another part has published its field but not yet its
     dataset.json: the refusal says what the other one says (the two writers' test sees either)."""
     from don_gym.descriptors import embed
