@@ -63,6 +63,7 @@ RUN_FILES = {
     "last_model": "model_last.zip",
     "last_buffer": "replay_buffer_last.pkl",
     "last_curve": "curve_last.csv",
+    "last_progress": "progress_last.json",
 }
 
 
@@ -457,9 +458,11 @@ def _curve_callback(
     progress: bool,
     run_dir: Path | None,
     save_every: int | None,
+    run_wall_s: Callable[[], float] = lambda: 0.0,
 ) -> Any:
     """SB3 callback: records finished episodes into ``curve``, drives a tqdm bar of env steps and,
-    with a run directory, saves the model (and replay buffer) and the curve every ``save_every`` steps."""
+    with a run directory, saves the model (and replay buffer), the curve and ``run_wall_s()`` (the
+    run's training time so far) every ``save_every`` steps."""
     from stable_baselines3.common.callbacks import BaseCallback
     from tqdm import tqdm
 
@@ -481,7 +484,7 @@ def _curve_callback(
                 self.bar.set_postfix(episodes=len(curve.successes), success=f"{np.mean(curve.successes[-50:]):.2f}")
             if run_dir is not None and save_every and self.num_timesteps - self.last_save >= save_every:
                 self.last_save = self.num_timesteps
-                save_checkpoint(self.model, curve, run_dir)
+                save_checkpoint(self.model, curve, run_dir, run_wall_s())
             return True
 
         def _on_training_end(self) -> None:
@@ -490,9 +493,10 @@ def _curve_callback(
     return _Callback()
 
 
-def save_checkpoint(model: Any, curve: LearningCurve, run_dir: str | Path) -> None:
-    """The resumable state of a run: ``model_last.zip``, the replay buffer of an off-policy algorithm
-    and ``curve_last.csv``, each written atomically."""
+def save_checkpoint(model: Any, curve: LearningCurve, run_dir: str | Path, wall_s: float = 0.0) -> None:
+    """The resumable state of a run: ``model_last.zip``, the replay buffer of an off-policy algorithm,
+    ``curve_last.csv`` and ``progress_last.json`` (env steps and ``wall_s``, the run's training time
+    in seconds over all its sessions), each written atomically."""
     run_dir = Path(run_dir)
     with atomic_path(run_dir / RUN_FILES["last_model"]) as tmp:
         model.save(tmp)
@@ -500,6 +504,18 @@ def save_checkpoint(model: Any, curve: LearningCurve, run_dir: str | Path) -> No
         with atomic_path(run_dir / RUN_FILES["last_buffer"]) as tmp:
             model.save_replay_buffer(tmp)
     curve.write_csv(run_dir / RUN_FILES["last_curve"])
+    progress = {"timesteps": int(model.num_timesteps), "wall_s": float(wall_s)}
+    write_text_atomic(run_dir / RUN_FILES["last_progress"], json.dumps(progress) + "\n")
+
+
+def _wall_s_before(run_dir: Path, saved_config: dict[str, Any]) -> float:
+    """Training time (s) of a run's earlier sessions: from its last saved progress, else from the
+    config of a finished run saved before progress files existed (0 when neither says)."""
+    path = run_dir / RUN_FILES["last_progress"]
+    try:
+        return float(json.loads(path.read_text())["wall_s"]) if path.is_file() else float(saved_config["wall_s"])
+    except (KeyError, TypeError, ValueError):
+        return 0.0
 
 
 def _monitored(maker: Callable[..., gym.Env], env_kwargs: dict[str, Any]) -> gym.Env:
@@ -511,13 +527,19 @@ def _monitored(maker: Callable[..., gym.Env], env_kwargs: dict[str, Any]) -> gym
 @dataclass
 class RLTrainResult:
     """A trained baseline: the SB3 model, the :class:`LearningCurve` of its training episodes, the
-    wall time in seconds and its run directory, if any (not :class:`don_gym.train.TrainResult`, a
-    DON training run)."""
+    wall time in seconds of this call (``wall_s``) and of the whole run over its resumed sessions
+    (``run_wall_s``), and its run directory, if any (not :class:`don_gym.train.TrainResult`, a DON
+    training run)."""
 
     model: Any
     curve: LearningCurve
     wall_s: float
     run_dir: Path | None = None
+    run_wall_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.run_wall_s is None:
+            self.run_wall_s = self.wall_s
 
 
 def _policy_inputs_extractor() -> type:
@@ -658,6 +680,7 @@ def train(
         "versions": {"python": platform.python_version(), "stable_baselines3": sb3.__version__},
     }
     curve = LearningCurve()
+    wall_s_before = 0.0
     if resume:
         last = run_path / RUN_FILES["last_model"]
         if not last.is_file():
@@ -667,6 +690,7 @@ def train(
         if differs:
             raise DonGymError(f"resume: {str(run_path)!r} was a run with other {differs}; start a new run_dir")
         curve = LearningCurve.read_csv(run_path / RUN_FILES["last_curve"])
+        wall_s_before = _wall_s_before(run_path, saved)
     elif run_path is not None:
         run_path.mkdir(parents=True, exist_ok=True)
     if run_path is not None:
@@ -674,6 +698,10 @@ def train(
     save_every = save_every or max(1, int(total_timesteps) // 10)
     vec_env = make_vec_env(algorithm, int(n_envs), seed, env_kwargs, vectorize, don_device)
     start = time.perf_counter()
+
+    def run_wall_s() -> float:
+        return wall_s_before + time.perf_counter() - start
+
     try:
         if resume:
             custom = {"policy_kwargs": kwargs["policy_kwargs"]}
@@ -690,16 +718,20 @@ def train(
         remaining = int(total_timesteps) - int(model.num_timesteps)
         if remaining > 0:
             description = f"{algorithm.upper()} train"
-            callback = _curve_callback(curve, int(total_timesteps), description, progress, run_path, save_every)
+            callback = _curve_callback(
+                curve, int(total_timesteps), description, progress, run_path, save_every, run_wall_s
+            )  # fmt: skip
             model.learn(total_timesteps=remaining, callback=callback, reset_num_timesteps=not resume)
     finally:
         vec_env.close()
     wall_s = time.perf_counter() - start
+    total_wall_s = wall_s_before + wall_s
     if run_path is not None:
         # The last state is the final one: --resume on a finished run trains no further.
-        save_checkpoint(model, curve, run_path)
-        write_run_outputs(run_path, model, curve, algorithm, config | {"wall_s": wall_s, "finished": True})
-    return RLTrainResult(model=model, curve=curve, wall_s=wall_s, run_dir=run_path)
+        save_checkpoint(model, curve, run_path, total_wall_s)
+        finished = {"wall_s": total_wall_s, "wall_s_this_session": wall_s, "finished": True}
+        write_run_outputs(run_path, model, curve, algorithm, config | finished)
+    return RLTrainResult(model=model, curve=curve, wall_s=wall_s, run_dir=run_path, run_wall_s=total_wall_s)
 
 
 def write_run_outputs(

@@ -258,9 +258,9 @@ def run_ppo(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
     )
     body = [
         f'**PPO on `control="grasp"`**: {args.ppo_steps} one-step grasp-and-place episodes per run, '
-        f"{args.ppo_envs} env(s); DON keypoints: {trained.wall_s / 60:.1f} min, success of the last {window} "
+        f"{args.ppo_envs} env(s); DON keypoints: {trained.run_wall_s / 60:.1f} min, success of the last {window} "
         f"training episodes (stochastic policy) {np.mean(last):.0%}; model of the DON (`SimulatedKeypoints` with "
-        f"the network's default noise model, no rendering): {simulated.wall_s / 60:.1f} min. Keypoints: "
+        f"the network's default noise model, no rendering): {simulated.run_wall_s / 60:.1f} min. Keypoints: "
         f"`{keypoint_model}`, {args.image_size[0]}x{args.image_size[1]}, sensor `{args.sensor}`; dense reward; "
         "actions are residuals about the keypoints' own grasp (midpoint lowered to the axis, axis yaw: action 0 "
         "grasps there; in the former centroid frame the MLP had to compute the world yaw from the keypoints' "
@@ -314,7 +314,7 @@ def run_images(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict
     )
     body = [
         f"**PPO from descriptor images** (beside the keypoint baseline): {args.images_steps} episodes, "
-        f"{trained.wall_s / 60:.1f} min; the `{keypoint_model}` descriptor image resized to "
+        f"{trained.run_wall_s / 60:.1f} min; the `{keypoint_model}` descriptor image resized to "
         f"{args.cnn_size[0]}x{args.cnn_size[1]}, clipped to [0, 1] and quantised to uint8 (`DescriptorImage`), "
         f"through SB3's `{extractor}`; actions span the env's action box (the policy has to find the part). "
         f"Run: `{_shown(args.out / 'ppo_images')}`. Learning curve: `{_shown(figure)}`.",
@@ -389,8 +389,8 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         else "training episodes start from the task's start"
     )
     times = ", ".join(
-        f"{source} {steps[source]} steps in {runs[source].wall_s / 60:.1f} min "
-        f"({1000 * runs[source].wall_s / max(steps[source], 1):.0f} ms/step)"
+        f"{source} {steps[source]} steps in {runs[source].run_wall_s / 60:.1f} min "
+        f"({1000 * runs[source].run_wall_s / max(steps[source], 1):.0f} ms/step)"
         for source in SAC_SOURCES
     )
     goal_text = (

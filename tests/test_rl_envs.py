@@ -228,7 +228,16 @@ def test_sac_her_trains_writes_its_run_and_resumes(tmp_path: Path) -> None:
     assert type(model.replay_buffer).__name__ == "HerReplayBuffer"
     # The policy sees the keypoints and the desired goal, not the true achieved goal.
     assert set(model.policy.actor.features_extractor.extractors) == {"observation", "desired_goal"}
-    for name in ("config", "curve_csv", "curve_png", "model", "last_model", "last_buffer", "last_curve"):
+    for name in (
+        "config",
+        "curve_csv",
+        "curve_png",
+        "model",
+        "last_model",
+        "last_buffer",
+        "last_curve",
+        "last_progress",
+    ):
         assert (run_dir / rl.RUN_FILES[name]).is_file(), name
     config = json.loads((run_dir / "config.json").read_text())
     assert config["seeds"] == {"algorithm": 0, "envs_first_reset": [0]} and config["finished"]
@@ -236,6 +245,12 @@ def test_sac_her_trains_writes_its_run_and_resumes(tmp_path: Path) -> None:
     resumed = rl.train("sac", 60, seed=0, env_kwargs=env_kwargs, algo_kwargs=algo_kwargs, progress=False,
                        run_dir=run_dir, resume=True)  # fmt: skip
     assert resumed.model.num_timesteps == 60 and len(resumed.curve.successes) == 6
+    # The run's training time adds up over its sessions; a resume that trains nothing adds ~nothing.
+    assert resumed.run_wall_s == pytest.approx(first.run_wall_s + resumed.wall_s)
+    again = rl.train("sac", 60, env_kwargs=env_kwargs, algo_kwargs=algo_kwargs, run_dir=run_dir, resume=True,
+                     progress=False)  # fmt: skip
+    assert again.model.num_timesteps == 60 and again.run_wall_s >= resumed.run_wall_s > first.run_wall_s
+    assert json.loads((run_dir / "progress_last.json").read_text()) == {"timesteps": 60, "wall_s": again.run_wall_s}
     with pytest.raises(DonGymError, match="other"):
         rl.train("sac", 80, env_kwargs=env_kwargs | {"max_steps": 5}, run_dir=run_dir, resume=True, progress=False)
     with pytest.raises(DonGymError, match="nothing|holds no"):
