@@ -25,6 +25,11 @@ not with ``--quick``).
     python benchmarks/bench_rl.py --only sac --resume  # one part, continuing its runs in runs/rl
     python benchmarks/bench_rl.py --quick              # smoke run of every part (a few minutes), records nothing
 
+Longer CPU recipe for the SAC part: the DON-keypoint run continued from its 15,000 default steps to 40,000,
+the other sources' budget (~80 min more on 2 cores; finished runs are only evaluated again)::
+
+    python benchmarks/bench_rl.py --only sac --sac-don-steps 40000 --resume
+
 Longer recipe for a GPU machine (16 cores, one GPU: the DON on the GPU on 8 envs' images at once, their
 physics in 8 subprocesses, a gradient step per env step)::
 
@@ -366,14 +371,27 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
                     env, rl.random_policy(env.action_space, args.seed), n, EVAL_SEED, f"eval random ({start})"
                 )
             env.close()
+    # The learning curves mix the training starts: their random baseline is a random policy on that mix,
+    # not on either evaluation start.
+    curve_baseline = "task start: random"
+    if args.sac_hand_starts:
+        curve_baseline = "training starts: random"
+        env = rl.make_sac_env(**base_kwargs, keypoints="true", hand_starts=args.sac_hand_starts)
+        # Cheap (no rendering, no network): more episodes than the policies get, for a steadier line.
+        results[curve_baseline] = rl.evaluate(
+            env, rl.random_policy(env.action_space, args.seed), 5 * n, EVAL_SEED, "eval random (training starts)"
+        )
+        env.close()
     window = max(3, min(50, min(len(r.curve.successes) for r in runs.values()) // 5))
     figure = args.figures / f"rl_sac_her_{args.sac_goal}.png"
+    baseline = results[curve_baseline]
+    baseline_label = f"random policy, {curve_baseline.split(':')[0]} ({len(baseline.successes)} episodes)"
     plot_learning_curve(
         [_curve_entry(f"{source} keypoints", runs[source].curve, window) for source in SAC_SOURCES],
         figure,
         window,
         f"SAC+HER, control='ee', goal '{args.sac_goal}', keypoints: simulated / {keypoint_model} / true",
-        reference_lines=[(f"eval: {name}", r.success_rate, r.mean_return) for name, r in results.items()],
+        reference_lines=[(baseline_label, baseline.success_rate, baseline.mean_return)],
     )
 
     def transfer_gap(start: str) -> float:
@@ -407,12 +425,18 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         f"(`{keypoint_model}` on {args.image_size[0]}x{args.image_size[1]} wrist images), `true` (exact, always "
         f"seen). {times}; {starts_text}. Learning starts {args.sac_learning_starts}, MLP 256x256, seed "
         f"{args.seed}. Runs: `{_shown(args.out)}/sac_{args.sac_goal}_*`. Learning curves (training episodes, "
-        f"all starts): `{_shown(figure)}`.",
+        f"all starts, beside a random policy on the same starts): `{_shown(figure)}`.",
         "",
         f"Evaluation on the same {n} held-out episodes (seeds {EVAL_SEED}..{EVAL_SEED + n - 1}) from two starts: "
         "the task's own (the hand 0.45 m above the table, open) and the part in the closed hand (`hand_start="
         "'in_hand'`); every policy with its own keypoints unless said; transfer gap of the simulated-keypoint "
-        f"policy (there minus with the DON): {gaps}. Success: `info['is_success']` at the episode's end.",
+        f"policy (there minus with the DON): {gaps}. Success: `info['is_success']` at the episode's end."
+        + (
+            f" *training starts: random* = a random policy on the training episodes' mix of starts (seeds "
+            f"{EVAL_SEED}..{EVAL_SEED + 5 * n - 1}), the baseline of the learning curves."
+            if args.sac_hand_starts
+            else ""
+        ),
         "",
         TABLE_HEAD,
         *[_row(name, result) for name, result in results.items()],
