@@ -25,10 +25,13 @@ not with ``--quick``).
     python benchmarks/bench_rl.py --only sac --resume  # one part, continuing its runs in runs/rl
     python benchmarks/bench_rl.py --quick              # smoke run of every part (a few minutes), records nothing
 
-Longer CPU recipe for the SAC part: the DON-keypoint run continued from its 15,000 default steps to 40,000,
-the other sources' budget (~80 min more on 2 cores; finished runs are only evaluated again)::
+Longer CPU recipe for the SAC part, continuing the default runs in ``runs/rl`` (a finished run is only evaluated
+again): the DON-keypoint run from its 15,000 default steps to 40,000 (~75 min more on 2 cores), then the simulated
+and true runs from 40,000 to 80,000 (~40 min more), the budget at which a policy also learns to lift from the
+task's own start rather than only from the hand starts::
 
     python benchmarks/bench_rl.py --only sac --sac-don-steps 40000 --resume
+    python benchmarks/bench_rl.py --only sac --sac-don-steps 40000 --sac-steps 80000 --resume
 
 Longer recipe for a GPU machine (16 cores, one GPU: the DON on the GPU on 8 envs' images at once, their
 physics in 8 subprocesses, a gradient step per env step)::
