@@ -92,11 +92,15 @@ def _launch_two(config: TrainConfig, die_in_step: int | None = None) -> dict[int
         process.start()
     for process in processes:
         process.join(timeout=240)
-        assert process.exitcode is not None, "a training process hung"
     outcome = {}
     while not results.empty():
         rank, message = results.get()
         outcome[rank] = message
+    hung = [rank for rank, process in enumerate(processes) if process.exitcode is None]
+    for rank in hung:  # none left behind to hold the port or the CPU for the tests after this one
+        processes[rank].kill()
+        processes[rank].join()
+    assert not hung, f"rank(s) {hung} hung for 240 s; what the others reported: {outcome}"
     return outcome
 
 
