@@ -185,8 +185,12 @@ def _check_not_foreign(out_dir: Path) -> None:
         raise DatasetError(f"{out_dir}: exists and is not a directory; expected a dataset directory")
     if not out_dir.is_dir():
         return
-    ours = (LOCK_FILE, FIELD_FILE, f".{FIELD_FILE}.partial-", f".{DATASET_FILE}.partial-")
-    foreign = sorted(p.name for p in out_dir.iterdir() if not any(p.name.startswith(o) for o in ours))
+    # Another build's files while it starts, its temporary names included; saving the field through a
+    # temporary name can stack a second one on the first ("..descriptor_field.npz.partial-a.npz.partial-b").
+    ours = (LOCK_FILE, FIELD_FILE, f"{FIELD_FILE}.partial-", f"{DATASET_FILE}.partial-")
+    foreign = sorted(
+        p.name for p in out_dir.iterdir() if not (p.name.startswith(ours) or p.name.lstrip(".").startswith(ours))
+    )
     if foreign:
         raise DatasetError(
             f"{out_dir}: exists and is not a don_gym dataset (holds {foreign[0]!r}); "

@@ -423,6 +423,22 @@ def test_another_parts_field_without_dataset_json_is_refused_like_a_different_da
     assert _snapshot(out) == before
 
 
+def test_another_builds_temporary_files_are_not_foreign(tmp_path: Path) -> None:
+    """A parallel shard's temporary names while it publishes the field (a temporary name of a temporary
+    name included, as the field's own atomic save stacks one on the other's) leave the directory ours."""
+    out = tmp_path / "ds"
+    out.mkdir()
+    for name in ("..descriptor_field.npz.partial-a1.npz.partial-b2.npz", ".dataset.json.partial-c3"):
+        (out / name).write_bytes(b"")
+    assert build_dataset(DatasetConfig(**{**TINY.__dict__, "scenes": 1}), out, progress=False).scenes_written == 1
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "..descriptor_field.npz.partial-a1.npz.partial-b2.npz").write_bytes(b"")
+    (other / "notes.txt").write_text("mine")
+    with pytest.raises(DatasetError, match="notes.txt"):
+        build_dataset(DatasetConfig(**{**TINY.__dict__, "scenes": 1}), other, progress=False)
+
+
 def test_a_replaced_field_file_is_refused(dataset: Path) -> None:
     """dataset.json names its field file's exact content: the scenes' targets were rendered from it."""
     from don_gym.descriptors import embed
