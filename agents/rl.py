@@ -458,7 +458,7 @@ def _curve_callback(
     progress: bool,
     run_dir: Path | None,
     save_every: int | None,
-    run_wall_s: Callable[[], float] = lambda: 0.0,
+    run_wall_s: Callable[[], float],
 ) -> Any:
     """SB3 callback: records finished episodes into ``curve``, drives a tqdm bar of env steps and,
     with a run directory, saves the model (and replay buffer), the curve and ``run_wall_s()`` (the
@@ -534,12 +534,8 @@ class RLTrainResult:
     model: Any
     curve: LearningCurve
     wall_s: float
+    run_wall_s: float
     run_dir: Path | None = None
-    run_wall_s: float | None = None
-
-    def __post_init__(self) -> None:
-        if self.run_wall_s is None:
-            self.run_wall_s = self.wall_s
 
 
 def _policy_inputs_extractor() -> type:
