@@ -376,13 +376,14 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
             env.close()
     # The learning curves mix the training starts: their random baseline is a random policy on that mix,
     # not on either evaluation start.
-    curve_baseline = "task start: random"
+    curve_baseline, random_episodes = "task start: random", 5 * n
     if args.sac_hand_starts:
         curve_baseline = "training starts: random"
         env = rl.make_sac_env(**base_kwargs, keypoints="true", hand_starts=args.sac_hand_starts)
         # Cheap (no rendering, no network): more episodes than the policies get, for a steadier line.
+        random_policy = rl.random_policy(env.action_space, args.seed)
         results[curve_baseline] = rl.evaluate(
-            env, rl.random_policy(env.action_space, args.seed), 5 * n, EVAL_SEED, "eval random (training starts)"
+            env, random_policy, random_episodes, EVAL_SEED, "eval random (training starts)"
         )
         env.close()
     window = max(3, min(50, min(len(r.curve.successes) for r in runs.values()) // 5))
@@ -436,7 +437,7 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         f"policy (there minus with the DON): {gaps}. Success: `info['is_success']` at the episode's end."
         + (
             f" *training starts: random* = a random policy on the training episodes' mix of starts (seeds "
-            f"{EVAL_SEED}..{EVAL_SEED + 5 * n - 1}), the baseline of the learning curves."
+            f"{EVAL_SEED}..{EVAL_SEED + random_episodes - 1}), the baseline of the learning curves."
             if args.sac_hand_starts
             else ""
         ),
