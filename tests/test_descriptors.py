@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pybullet_data
 import pytest
+import scipy.sparse as sp
 import trimesh
 
 from don_gym import descriptors as D
@@ -206,6 +207,77 @@ def test_cotan_laplacian_is_robust_laplacian_on_a_delaunay_mesh():
     assert abs(L - L_robust).max() < 1e-4 * abs(L_robust).max()  # mollification only
     assert np.allclose(mass, mass_robust, rtol=1e-4)
     assert np.allclose(L @ np.ones(len(vertices)), 0.0, atol=1e-9)
+
+
+def _noisy_sphere(points: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Closed, outward-wound sphere of random points with radial noise: many non-Delaunay edges."""
+    from scipy.spatial import ConvexHull
+
+    rng = np.random.default_rng(seed)
+    vertices = rng.normal(size=(points, 3))
+    vertices /= np.linalg.norm(vertices, axis=1, keepdims=True)
+    faces = ConvexHull(vertices).simplices
+    normal = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
+    inward = np.einsum("ij,ij->i", normal, vertices[faces].mean(axis=1)) < 0
+    faces[inward] = faces[inward][:, ::-1]
+    vertices *= 1.0 + 0.02 * rng.standard_normal((points, 1))
+    return vertices, faces.astype(np.int64)
+
+
+def _robust_pair(vertices: np.ndarray, faces: np.ndarray):
+    import robust_laplacian
+
+    L, M = robust_laplacian.mesh_laplacian(vertices, faces, mollify_factor=D.MOLLIFY_FACTOR)
+    return L, M.diagonal()
+
+
+def test_intrinsic_flips_give_robust_laplacians_operator_on_a_closed_manifold_mesh():
+    vertices, faces = _noisy_sphere(600, seed=1)
+    L_robust, mass_robust = _robust_pair(vertices, faces)
+    # Long edges that are not locally Delaunay: the cotangent Laplacian refuses the mesh, flips are needed.
+    assert D.cotan_laplacian(vertices, faces) is None
+    L, mass = D.intrinsic_delaunay_laplacian(vertices, faces)
+    off_diagonal = L - sp.diags(L.diagonal())
+    assert off_diagonal.max() <= 1e-12  # Delaunay: no negative edge weight left
+    assert abs(L - L_robust).max() < 1e-9 * abs(L_robust).max()
+    assert np.allclose(mass, mass_robust, rtol=1e-9)
+    assert (L - L.T).count_nonzero() == 0 and np.allclose(L @ np.ones(len(vertices)), 0.0, atol=1e-9)
+    L_auto, mass_auto = D.mesh_laplacian(vertices, faces)  # the same pair, by the same path
+    assert abs(L_auto - L).max() == 0 and np.array_equal(mass_auto, mass)
+
+
+def _open_cap(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    faces = faces[vertices[faces].mean(axis=1)[:, 2] < 0.3]
+    used, faces = np.unique(faces, return_inverse=True)
+    return vertices[used], faces.reshape(-1, 3)
+
+
+def _miswound(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    faces = faces.copy()
+    faces[:5] = faces[:5, ::-1]
+    return vertices, faces
+
+
+def _two_spheres_at_a_vertex(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    shared = int(np.argmax(vertices[:, 0]))
+    other = vertices.copy()
+    other[:, 0] = 2 * vertices[shared, 0] - other[:, 0]  # mirrored through the plane x = x_shared
+    other_faces = faces[:, ::-1] + len(vertices)
+    other_faces[other_faces == shared + len(vertices)] = shared
+    keep = np.setdiff1d(np.arange(2 * len(vertices)), [shared + len(vertices)])
+    renumber = np.full(2 * len(vertices), -1)
+    renumber[keep] = np.arange(len(keep))
+    return np.vstack([vertices, other])[keep], renumber[np.vstack([faces, other_faces])]
+
+
+@pytest.mark.parametrize("make", [_open_cap, _miswound, _two_spheres_at_a_vertex])
+def test_meshes_where_the_tufted_cover_differs_go_to_robust_laplacian(make):
+    vertices, faces = make(*_noisy_sphere(400, seed=2))
+    assert (np.bincount(faces.ravel(), minlength=len(vertices)) > 0).all()
+    assert D.intrinsic_delaunay_laplacian(vertices, faces) is None
+    L_robust, mass_robust = _robust_pair(vertices, faces)
+    L, mass = D.mesh_laplacian(vertices, faces)
+    assert abs(L - L_robust).max() == 0 and np.array_equal(mass, mass_robust)
 
 
 @pytest.mark.parametrize(

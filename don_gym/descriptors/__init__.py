@@ -11,7 +11,13 @@ from don_gym.descriptors.embed import (
     group_eigenvalues,
 )
 from don_gym.descriptors.field import FIELD_MATCH_ATOL, DescriptorField, interpolate_field, mesh_content_hash
-from don_gym.descriptors.laplacian import MOLLIFY_FACTOR, cotan_laplacian, mesh_laplacian, normalize_to_unit_area
+from don_gym.descriptors.laplacian import (
+    MOLLIFY_FACTOR,
+    cotan_laplacian,
+    intrinsic_delaunay_laplacian,
+    mesh_laplacian,
+    normalize_to_unit_area,
+)
 
 __all__ = [
     "CONSTANT_GROUP_RTOL",
@@ -26,6 +32,7 @@ __all__ = [
     "embed",
     "group_eigenvalues",
     "interpolate_field",
+    "intrinsic_delaunay_laplacian",
     "laplacian_eigenpairs",
     "mesh_content_hash",
     "mesh_laplacian",

@@ -1,5 +1,6 @@
-"""Discrete Laplace-Beltrami operators of a triangle mesh: robust_laplacian's intrinsic-Delaunay
-Laplacian, the cotangent Laplacian, normalisation to unit area, and connected pieces."""
+"""Discrete Laplace-Beltrami operators of a triangle mesh: the intrinsic-Delaunay Laplacian of
+robust_laplacian (computed here by edge flips on closed manifold meshes), the cotangent Laplacian,
+normalisation to unit area, and connected pieces."""
 
 from __future__ import annotations
 
@@ -23,6 +24,10 @@ _COTAN_MAX_ANGLE = math.radians(170.0)  # cotan_laplacian refuses meshes with a 
 # whose faces are fans of needles, where every angle is below 160 degrees).
 _COTAN_MAX_FLIPPED_EDGE = 0.1
 _DELAUNAY_TOL = 1e-9  # cotangent weights of cocircular pairs (rectangles' diagonals) round to about +-1e-13
+# robust_laplacian flips an edge when its weight (half the sum of its two cotangents) is below -1e-6;
+# the same threshold keeps nearly cocircular pairs (a CAD mesh stored in float32) unflipped, as there:
+# flipping them leaves L unchanged but moves lumped mass between the quad's corners.
+_FLIP_TOL = 1e-6
 
 
 def normalize_to_unit_area(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float]:
@@ -43,17 +48,162 @@ def normalize_to_unit_area(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.
 
 def mesh_laplacian(vertices: np.ndarray, faces: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
     """Intrinsic-Delaunay Laplacian ``L`` (positive semi-definite, CSR) and lumped mass diagonal ``M``
-    (N,) from ``robust_laplacian.mesh_laplacian`` (mollify factor :data:`MOLLIFY_FACTOR`)."""
-    L, M = robust_laplacian.mesh_laplacian(
-        np.ascontiguousarray(vertices, dtype=np.float64),
-        np.ascontiguousarray(faces, dtype=np.int64),
-        mollify_factor=MOLLIFY_FACTOR,
-    )
-    mass = np.asarray(M.diagonal(), dtype=np.float64)
+    (N,) of ``robust_laplacian.mesh_laplacian`` (mollify factor :data:`MOLLIFY_FACTOR`).
+
+    On a closed, consistently oriented manifold mesh the same pair comes from
+    :func:`intrinsic_delaunay_laplacian` (equal to rounding, several times faster on meshes with many
+    non-Delaunay edges); robust_laplacian's tufted cover handles every other mesh.
+    """
+    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    flipped = intrinsic_delaunay_laplacian(vertices, faces)
+    if flipped is not None:
+        L, mass = flipped
+    else:
+        L, M = robust_laplacian.mesh_laplacian(vertices, faces, mollify_factor=MOLLIFY_FACTOR)
+        L, mass = sp.csr_matrix(L), np.asarray(M.diagonal(), dtype=np.float64)
     if not np.all(mass > 0):
         # Unreferenced vertices get zero mass: the eigenproblem would be singular.
         raise MeshError(f"{int((mass <= 0).sum())} vertices have zero area (unreferenced or isolated)")
-    return sp.csr_matrix(L), mass
+    return L, mass
+
+
+def _cotangent(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(cotangent of the angle opposite side ``c``, area) of triangles with side lengths a, b, c."""
+    s = 0.5 * (a + b + c)
+    area = np.sqrt(np.maximum(s * (s - a) * (s - b) * (s - c), 0.0))
+    return (a * a + b * b - c * c) / (4.0 * area), area
+
+
+def intrinsic_delaunay_laplacian(
+    vertices: np.ndarray, faces: np.ndarray, max_rounds: int = 100_000
+) -> tuple[sp.csr_matrix, np.ndarray] | None:
+    """Cotangent Laplacian ``L`` (N, N) CSR and lumped mass ``M`` (N,) of the intrinsic Delaunay
+    triangulation of a closed, consistently oriented manifold mesh (the operator of Sharp & Crane's
+    robust_laplacian on such a mesh, with its mollification :data:`MOLLIFY_FACTOR`); None for any
+    other mesh (a boundary edge, an edge in more than two faces, inconsistent winding, a vertex whose
+    faces form more than one fan), or when the flips do not finish in ``max_rounds`` rounds.
+
+    The triangulation keeps the mesh's vertices and intrinsic metric (edge lengths) and flips every
+    edge whose two opposite angles sum to more than pi; each round flips a set of such edges no two
+    of which share a face, all at once, so the work is a few array passes per round rather than a
+    loop over edges. Edge lengths are in the units of ``vertices``; M is a third of the intrinsic
+    area of each face at its corners.
+    """
+    n, n_faces = len(vertices), len(faces)
+    corner_vertex = np.array(faces, dtype=np.int64)  # (F, 3), updated by the flips
+    if n_faces == 0 or np.any(corner_vertex[:, [0, 1, 2]] == corner_vertex[:, [1, 2, 0]]):
+        return None  # no faces, or a face with a repeated vertex
+    # Edge k of a face is opposite its corner k and joins corners k+1 -> k+2 (the face's winding).
+    tail = corner_vertex[:, [1, 2, 0]].T.ravel()
+    head = corner_vertex[:, [2, 0, 1]].T.ravel()
+    key = np.minimum(tail, head) * n + np.maximum(tail, head)
+    order = np.argsort(key, kind="stable")
+    starts = np.ones(len(key), dtype=bool)
+    starts[1:] = key[order][1:] != key[order][:-1]
+    edge_of = np.empty(len(key), dtype=np.int64)
+    edge_of[order] = np.cumsum(starts) - 1
+    n_edges = int(edge_of[order[-1]]) + 1
+    faces_per_edge = np.bincount(edge_of, minlength=n_edges)
+    forward = np.bincount(edge_of, (tail < head).astype(np.int64), minlength=n_edges)
+    if np.any(faces_per_edge != 2) or np.any(forward != 1):  # boundary, non-manifold or mis-wound
+        return None
+    face_edge = edge_of.reshape(3, n_faces).T.copy()  # (F, 3) edge opposite each corner
+    # Both sides of each edge: (face, corner opposite the edge).
+    side_face = np.tile(np.arange(n_faces), 3)[order].reshape(n_edges, 2)
+    side_corner = np.repeat(np.arange(3), n_faces)[order].reshape(n_edges, 2)
+    if _fans(corner_vertex, face_edge, side_face, side_corner) != len(np.unique(corner_vertex)):
+        return None  # a vertex where two or more fans of faces meet: the tufted cover differs there
+
+    first = order[starts]
+    length = np.linalg.norm(vertices[tail[first]] - vertices[head[first]], axis=1)
+    # Mollification as robust_laplacian's: lengthen every edge by the least amount that gives every
+    # face a triangle-inequality margin of MOLLIFY_FACTOR times the mean edge length.
+    sides = length[face_edge]
+    margin = sides.sum(axis=1, keepdims=True) - 2.0 * sides
+    length = length + max(0.0, float((MOLLIFY_FACTOR * length.mean() - margin).max()))
+
+    def cot_opposite(face: np.ndarray, corner: np.ndarray) -> np.ndarray:
+        edges = face_edge[face]
+        rows = np.arange(len(face))
+        return _cotangent(
+            length[edges[rows, (corner + 1) % 3]], length[edges[rows, (corner + 2) % 3]], length[edges[rows, corner]]
+        )[0]
+
+    rng = np.random.default_rng(0)  # tie-breaking priorities only: the Delaunay triangulation is unique
+    active = np.arange(n_edges)
+    for _ in range(max_rounds):
+        weight = cot_opposite(side_face[active, 0], side_corner[active, 0])
+        weight += cot_opposite(side_face[active, 1], side_corner[active, 1])
+        candidates = active[0.5 * weight < -_FLIP_TOL]
+        if len(candidates) == 0:
+            break
+        # Flip the candidates whose random priority is the highest among the candidates of both faces.
+        priority = rng.random(len(candidates))
+        highest = np.full(n_faces, -1.0)
+        np.maximum.at(highest, side_face[candidates, 0], priority)
+        np.maximum.at(highest, side_face[candidates, 1], priority)
+        wins = (highest[side_face[candidates, 0]] == priority) & (highest[side_face[candidates, 1]] == priority)
+        edge = candidates[wins]
+        # Face f = (k, i, j) from its corner opposite the edge, face g = (l, j, i): the edge i-j
+        # becomes k-l, f = (k, i, l) and g = (l, j, k), each corner keeping its slot.
+        f, g = side_face[edge, 0], side_face[edge, 1]
+        cf, cg = side_corner[edge, 0], side_corner[edge, 1]
+        cf1, cf2, cg1, cg2 = (cf + 1) % 3, (cf + 2) % 3, (cg + 1) % 3, (cg + 2) % 3
+        vertex_k, vertex_l = corner_vertex[f, cf], corner_vertex[g, cg]
+        edge_jk, edge_ki = face_edge[f, cf1], face_edge[f, cf2]
+        edge_il, edge_lj = face_edge[g, cg1], face_edge[g, cg2]
+        # The new length: lay the two faces out in the plane, i at the origin, j on the x axis.
+        ij, ik, jk, il, lj = length[edge], length[edge_ki], length[edge_jk], length[edge_il], length[edge_lj]
+        x_k = (ij * ij + ik * ik - jk * jk) / (2.0 * ij)
+        x_l = (ij * ij + il * il - lj * lj) / (2.0 * ij)
+        y_k = np.sqrt(np.maximum(ik * ik - x_k * x_k, 0.0))
+        y_l = np.sqrt(np.maximum(il * il - x_l * x_l, 0.0))
+        length[edge] = np.hypot(x_k - x_l, y_k + y_l)
+        corner_vertex[f, cf2], corner_vertex[g, cg2] = vertex_l, vertex_k
+        face_edge[f, cf], face_edge[f, cf1] = edge_il, edge
+        face_edge[g, cg], face_edge[g, cg1] = edge_jk, edge
+        side_corner[edge, 0], side_corner[edge, 1] = cf1, cg1
+        slot = np.where((side_face[edge_il, 0] == g) & (side_corner[edge_il, 0] == cg1), 0, 1)
+        side_face[edge_il, slot], side_corner[edge_il, slot] = f, cf
+        slot = np.where((side_face[edge_jk, 0] == f) & (side_corner[edge_jk, 0] == cf1), 0, 1)
+        side_face[edge_jk, slot], side_corner[edge_jk, slot] = g, cg
+        # Only the flipped quads' edges, and the candidates that lost, can be non-Delaunay now.
+        touched = np.zeros(n_edges, dtype=bool)
+        touched[np.concatenate([candidates[~wins], edge, edge_jk, edge_ki, edge_il, edge_lj])] = True
+        active = np.flatnonzero(touched)
+    else:
+        return None
+
+    sides = length[face_edge]
+    rows, cols, weights = [], [], []
+    for k in range(3):
+        cot, area = _cotangent(sides[:, (k + 1) % 3], sides[:, (k + 2) % 3], sides[:, k])
+        weights.append(0.5 * cot)
+        rows.append(corner_vertex[:, (k + 1) % 3])
+        cols.append(corner_vertex[:, (k + 2) % 3])
+    i, j, w = np.concatenate(rows), np.concatenate(cols), np.concatenate(weights)
+    # An edge flipped into a loop at one vertex adds equally to a diagonal entry and its row sum.
+    off = sp.csr_matrix((np.concatenate([-w, -w]), (np.concatenate([i, j]), np.concatenate([j, i]))), shape=(n, n))
+    L = sp.csr_matrix(off - sp.diags(np.asarray(off.sum(axis=1)).ravel()))
+    mass = np.bincount(corner_vertex.ravel(), np.repeat(area / 3.0, 3), minlength=n)
+    return L, mass
+
+
+def _fans(corner_vertex: np.ndarray, face_edge: np.ndarray, side_face: np.ndarray, side_corner: np.ndarray) -> int:
+    """Number of fans of faces about the vertices of a closed, oriented edge-manifold mesh: corners
+    at a vertex joined across the edges between them, counted as connected pieces."""
+    n_faces = len(corner_vertex)
+    face = np.arange(n_faces)
+    links = []
+    for k in range(3):
+        # Corner k's edge to corner k+1 is the edge opposite corner k+2; across it, in the other
+        # face g (corner q opposite), the same vertex is corner q+2 (the windings are opposite).
+        edge = face_edge[:, (k + 2) % 3]
+        other = np.where(side_face[edge, 0] == face, 1, 0)
+        g, q = side_face[edge, other], side_corner[edge, other]
+        links.append(np.stack([face * 3 + k, g * 3 + (q + 2) % 3], axis=1))
+    return _connected_pieces(3 * n_faces, np.concatenate(links))[0]
 
 
 def cotan_laplacian(
