@@ -82,8 +82,17 @@ def descriptor_distances(descriptor_image: np.ndarray, reference: np.ndarray) ->
     image = _as_descriptor_image(descriptor_image)
     reference = _as_reference(reference, image.shape[2])
     # Differences, not the |a|^2 - 2ab + |b|^2 expansion: exact matches must give exactly 0 so
-    # that equal descriptors tie exactly.
-    return np.stack([np.sqrt(np.sum(np.square(image - r), axis=2)) for r in reference]).astype(np.float32)
+    # that equal descriptors tie exactly. One image plane at a time into preallocated float32
+    # buffers: an order of magnitude faster than reducing an (H, W, D) temporary over its short last axis.
+    planes = np.moveaxis(image, 2, 0)
+    distances = np.empty((len(reference), *image.shape[:2]), dtype=np.float32)
+    term = np.empty(image.shape[:2], dtype=np.float32)
+    for total, r in zip(distances, reference, strict=True):
+        np.square(np.subtract(planes[0], r[0], out=total), out=total)
+        for plane, value in zip(planes[1:], r[1:], strict=True):
+            total += np.square(np.subtract(plane, value, out=term), out=term)
+        np.sqrt(total, out=total)
+    return distances
 
 
 def _best_from_distances(distances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
