@@ -49,7 +49,6 @@ from don_gym.descriptors import FIELD_MATCH_ATOL, DescriptorField, embed
 from don_gym.errors import DatasetError, DonGymError, SeveralPiecesError
 from don_gym.fusion import fuse_scene, fused_object_masks
 from don_gym.geometry import invert_transform
-from don_gym.io import atomic_path
 from don_gym.objects import ObjectModel, load_object
 from don_gym.render import DescriptorRenderer
 
@@ -185,8 +184,8 @@ def _check_not_foreign(out_dir: Path) -> None:
         raise DatasetError(f"{out_dir}: exists and is not a directory; expected a dataset directory")
     if not out_dir.is_dir():
         return
-    # Another build's files while it starts, its temporary names included; saving the field through a
-    # temporary name can stack a second one on the first ("..descriptor_field.npz.partial-a.npz.partial-b").
+    # Another build's files while it starts, its temporary names included; builds of older don_gym versions
+    # stacked a second temporary name on the first ("..descriptor_field.npz.partial-a.npz.partial-b").
     ours = (LOCK_FILE, FIELD_FILE, f"{FIELD_FILE}.partial-", f"{DATASET_FILE}.partial-")
     foreign = sorted(
         p.name for p in out_dir.iterdir() if not (p.name.startswith(ours) or p.name.lstrip(".").startswith(ours))
@@ -242,8 +241,7 @@ def _resolve_dataset(
             return field if field is not None else computed
         try:
             if field is None:
-                with atomic_path(field_path, exclusive=True) as tmp:
-                    computed.save(tmp)
+                computed.save(field_path, exclusive=True)
                 field = computed
             if recorded is None:
                 write_json(info_path, wanted, exclusive=True)

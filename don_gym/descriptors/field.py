@@ -180,11 +180,12 @@ class DescriptorField:
             )
         return interpolate_field(self.vertex_descriptors, faces, triangle_ids, barycentric)
 
-    def save(self, path: str | Path) -> Path:
-        """Write the field as ``.npz`` (atomically); returns the path."""
+    def save(self, path: str | Path, *, exclusive: bool = False) -> Path:
+        """Write the field as ``.npz`` (atomically); returns the path. ``exclusive``: only if ``path``
+        does not exist yet, else FileExistsError (of builds racing to create it, one wins)."""
         path = Path(path)
         meta = dict(self._meta(), field_hash=self.field_hash)
-        with atomic_path(path) as tmp:
+        with atomic_path(path, exclusive=exclusive) as tmp:
             with open(tmp, "wb") as f:
                 np.savez(
                     f,
