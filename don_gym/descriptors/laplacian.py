@@ -112,7 +112,7 @@ def intrinsic_delaunay_laplacian(
     # Both sides of each edge: (face, corner opposite the edge).
     side_face = np.tile(np.arange(n_faces), 3)[order].reshape(n_edges, 2)
     side_corner = np.repeat(np.arange(3), n_faces)[order].reshape(n_edges, 2)
-    if _fans(corner_vertex, face_edge, side_face, side_corner) != len(np.unique(corner_vertex)):
+    if _fans(corner_vertex, face_edge, side_face, side_corner) != np.count_nonzero(np.bincount(tail, minlength=n)):
         return None  # a vertex where two or more fans of faces meet: the tufted cover differs there
 
     first = order[starts]
@@ -130,12 +130,21 @@ def intrinsic_delaunay_laplacian(
             length[edges[rows, (corner + 1) % 3]], length[edges[rows, (corner + 2) % 3]], length[edges[rows, corner]]
         )[0]
 
+    def edge_weights() -> np.ndarray:
+        """(E,) half the sum of each edge's two opposite cotangents, from every face's cotangents at once."""
+        sides = length[face_edge]
+        cot = np.stack([_cotangent(sides[:, (k + 1) % 3], sides[:, (k + 2) % 3], sides[:, k])[0] for k in range(3)], 1)
+        return 0.5 * (cot[side_face[:, 0], side_corner[:, 0]] + cot[side_face[:, 1], side_corner[:, 1]])
+
     rng = np.random.default_rng(0)  # tie-breaking priorities only: the Delaunay triangulation is unique
     active = np.arange(n_edges)
-    for _ in range(max_rounds):
-        weight = cot_opposite(side_face[active, 0], side_corner[active, 0])
-        weight += cot_opposite(side_face[active, 1], side_corner[active, 1])
-        candidates = active[0.5 * weight < -_FLIP_TOL]
+    for round_ in range(max_rounds):
+        if round_ == 0:
+            weight = edge_weights()
+        else:
+            weight = 0.5 * cot_opposite(side_face[active, 0], side_corner[active, 0])
+            weight += 0.5 * cot_opposite(side_face[active, 1], side_corner[active, 1])
+        candidates = active[weight < -_FLIP_TOL]
         if len(candidates) == 0:
             break
         # Flip the candidates whose random priority is the highest among the candidates of both faces.
@@ -175,17 +184,15 @@ def intrinsic_delaunay_laplacian(
     else:
         return None
 
-    sides = length[face_edge]
-    rows, cols, weights = [], [], []
-    for k in range(3):
-        cot, area = _cotangent(sides[:, (k + 1) % 3], sides[:, (k + 2) % 3], sides[:, k])
-        weights.append(0.5 * cot)
-        rows.append(corner_vertex[:, (k + 1) % 3])
-        cols.append(corner_vertex[:, (k + 2) % 3])
-    i, j, w = np.concatenate(rows), np.concatenate(cols), np.concatenate(weights)
+    # Each edge once: its end points are the vertices at the other two corners of either face.
+    weight = edge_weights()
+    face, corner = side_face[:, 0], side_corner[:, 0]
+    i, j = corner_vertex[face, (corner + 1) % 3], corner_vertex[face, (corner + 2) % 3]
     # An edge flipped into a loop at one vertex adds equally to a diagonal entry and its row sum.
-    off = sp.csr_matrix((np.concatenate([-w, -w]), (np.concatenate([i, j]), np.concatenate([j, i]))), shape=(n, n))
+    off = sp.csr_matrix((np.concatenate([-weight, -weight]), (np.concatenate([i, j]), np.concatenate([j, i]))), (n, n))
     L = sp.csr_matrix(off - sp.diags(np.asarray(off.sum(axis=1)).ravel()))
+    sides = length[face_edge]
+    area = _cotangent(sides[:, 0], sides[:, 1], sides[:, 2])[1]
     mass = np.bincount(corner_vertex.ravel(), np.repeat(area / 3.0, 3), minlength=n)
     return L, mass
 
@@ -195,15 +202,17 @@ def _fans(corner_vertex: np.ndarray, face_edge: np.ndarray, side_face: np.ndarra
     at a vertex joined across the edges between them, counted as connected pieces."""
     n_faces = len(corner_vertex)
     face = np.arange(n_faces)
-    links = []
+    following = np.empty((n_faces, 3), dtype=np.int64)  # corner -> next corner about the same vertex
     for k in range(3):
         # Corner k's edge to corner k+1 is the edge opposite corner k+2; across it, in the other
         # face g (corner q opposite), the same vertex is corner q+2 (the windings are opposite).
         edge = face_edge[:, (k + 2) % 3]
         other = np.where(side_face[edge, 0] == face, 1, 0)
-        g, q = side_face[edge, other], side_corner[edge, other]
-        links.append(np.stack([face * 3 + k, g * 3 + (q + 2) % 3], axis=1))
-    return _connected_pieces(3 * n_faces, np.concatenate(links))[0]
+        following[:, k] = side_face[edge, other] * 3 + (side_corner[edge, other] + 2) % 3
+    # A permutation of the corners: its cycles are the fans, the strong components of its graph.
+    size = 3 * n_faces
+    graph = sp.csr_matrix((np.ones(size, dtype=np.int8), following.ravel(), np.arange(size + 1)), shape=(size, size))
+    return connected_components(graph, directed=True, connection="strong")[0]
 
 
 def cotan_laplacian(
