@@ -26,12 +26,15 @@ not with ``--quick``).
     python benchmarks/bench_rl.py --quick              # smoke run of every part (a few minutes), records nothing
 
 Longer CPU recipe for the SAC part, continuing the default runs in ``runs/rl`` (a finished run is only evaluated
-again): the DON-keypoint run from its 15,000 default steps to 40,000 (~75 min more on 2 cores), then the simulated
-and true runs from 40,000 to 80,000 (~40 min more), at which the true-keypoint policy also lifts from the task's
-own start (RESULTS "rl-sac": 75%; the simulated-keypoint one not yet)::
+again): the DON-keypoint run from its 15,000 default steps to 40,000 (~75 min more on 2 cores), the simulated and
+true runs from 40,000 to 80,000 (~40 min more), at which the true-keypoint policy also lifts from the task's own
+start, then the DON-keypoint run to 60,000 (~60 min more), at which the DON-trained policy lifts the part from
+the hand clearly above random (RESULTS "rl-sac": true 75% from the task's start; DON-trained 65% from the hand,
+random 10%; 25% at 40,000)::
 
     python benchmarks/bench_rl.py --only sac --sac-don-steps 40000 --resume
     python benchmarks/bench_rl.py --only sac --sac-don-steps 40000 --sac-steps 80000 --resume
+    python benchmarks/bench_rl.py --only sac --sac-don-steps 60000 --sac-steps 80000 --resume
 
 Longer recipe for a GPU machine (16 cores, one GPU: the DON on the GPU on 8 envs' images at once, their
 physics in 8 subprocesses, a gradient step per env step)::
