@@ -136,7 +136,9 @@ def intrinsic_delaunay_laplacian(
         cot = np.stack([_cotangent(sides[:, (k + 1) % 3], sides[:, (k + 2) % 3], sides[:, k])[0] for k in range(3)], 1)
         return 0.5 * (cot[side_face[:, 0], side_corner[:, 0]] + cot[side_face[:, 1], side_corner[:, 1]])
 
-    rng = np.random.default_rng(0)  # tie-breaking priorities only: the Delaunay triangulation is unique
+    # Priorities only break ties between neighbouring candidates: the Delaunay triangulation is unique but
+    # for cocircular pairs, which the threshold leaves unflipped, so the order of flips does not matter.
+    rng = np.random.default_rng(0)
     active = np.arange(n_edges)
     for round_ in range(max_rounds):
         if round_ == 0:
