@@ -28,13 +28,14 @@ not with ``--quick``).
 Longer CPU recipe for the SAC part, continuing the default runs in ``runs/rl`` (a finished run is only evaluated
 again): the DON-keypoint run from its 15,000 default steps to 40,000 (~75 min more on 2 cores), the simulated and
 true runs from 40,000 to 80,000 (~40 min more), at which the true-keypoint policy also lifts from the task's own
-start, then the DON-keypoint run to 60,000 (~60 min more), at which the DON-trained policy lifts the part from
-the hand clearly above random (RESULTS "rl-sac": true 75% from the task's start; DON-trained 65% from the hand,
-random 10%; 25% at 40,000)::
+start, then the DON-keypoint run to 60,000 and 80,000 (~60 min more each), at which the DON-trained policy lifts
+the part from the hand as the others do (RESULTS "rl-sac": true 75% from the task's start; DON-trained from the
+hand 25% at 40,000, 65% at 60,000, 100% at 80,000; random 10%)::
 
     python benchmarks/bench_rl.py --only sac --sac-don-steps 40000 --resume
     python benchmarks/bench_rl.py --only sac --sac-don-steps 40000 --sac-steps 80000 --resume
     python benchmarks/bench_rl.py --only sac --sac-don-steps 60000 --sac-steps 80000 --resume
+    python benchmarks/bench_rl.py --only sac --sac-don-steps 80000 --sac-steps 80000 --resume
 
 Longer recipe for a GPU machine (16 cores, one GPU: the DON on the GPU on 8 envs' images at once, their
 physics in 8 subprocesses, a gradient step per env step)::
