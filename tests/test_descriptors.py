@@ -209,19 +209,10 @@ def test_cotan_laplacian_is_robust_laplacian_on_a_delaunay_mesh():
     assert np.allclose(L @ np.ones(len(vertices)), 0.0, atol=1e-9)
 
 
-def _noisy_sphere(points: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Closed, outward-wound sphere of random points with radial noise: many non-Delaunay edges."""
-    from scipy.spatial import ConvexHull
-
-    rng = np.random.default_rng(seed)
-    vertices = rng.normal(size=(points, 3))
-    vertices /= np.linalg.norm(vertices, axis=1, keepdims=True)
-    faces = ConvexHull(vertices).simplices
-    normal = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
-    inward = np.einsum("ij,ij->i", normal, vertices[faces].mean(axis=1)) < 0
-    faces[inward] = faces[inward][:, ::-1]
-    vertices *= 1.0 + 0.02 * rng.standard_normal((points, 1))
-    return vertices, faces.astype(np.int64)
+def _noisy_sphere(bench_descriptors, points: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The benchmark's scan-like sphere (closed, outward-wound, radial noise): many non-Delaunay edges."""
+    mesh = bench_descriptors.scanned_sphere(points, seed=seed)
+    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
 
 
 def _robust_pair(vertices: np.ndarray, faces: np.ndarray):
@@ -231,8 +222,8 @@ def _robust_pair(vertices: np.ndarray, faces: np.ndarray):
     return L, M.diagonal()
 
 
-def test_intrinsic_flips_give_robust_laplacians_operator_on_a_closed_manifold_mesh():
-    vertices, faces = _noisy_sphere(600, seed=1)
+def test_intrinsic_flips_give_robust_laplacians_operator_on_a_closed_manifold_mesh(bench_descriptors):
+    vertices, faces = _noisy_sphere(bench_descriptors, 600, seed=1)
     L_robust, mass_robust = _robust_pair(vertices, faces)
     # Long edges that are not locally Delaunay: the cotangent Laplacian refuses the mesh, flips are needed.
     assert D.cotan_laplacian(vertices, faces) is None
@@ -271,8 +262,8 @@ def _two_spheres_at_a_vertex(vertices: np.ndarray, faces: np.ndarray) -> tuple[n
 
 
 @pytest.mark.parametrize("make", [_open_cap, _miswound, _two_spheres_at_a_vertex])
-def test_meshes_where_the_tufted_cover_differs_go_to_robust_laplacian(make):
-    vertices, faces = make(*_noisy_sphere(400, seed=2))
+def test_meshes_where_the_tufted_cover_differs_go_to_robust_laplacian(bench_descriptors, make):
+    vertices, faces = make(*_noisy_sphere(bench_descriptors, 400, seed=2))
     assert (np.bincount(faces.ravel(), minlength=len(vertices)) > 0).all()
     assert D.intrinsic_delaunay_laplacian(vertices, faces) is None
     L_robust, mass_robust = _robust_pair(vertices, faces)

@@ -425,7 +425,7 @@ def test_another_parts_field_without_dataset_json_is_refused_like_a_different_da
 
 def test_another_builds_temporary_files_are_not_foreign(tmp_path: Path) -> None:
     """A parallel shard's temporary names while it publishes the field (a temporary name of a temporary
-    name included, as the field's own atomic save stacks one on the other's) leave the directory ours."""
+    name included, as builds of older don_gym versions stacked one on the other) leave the directory ours."""
     out = tmp_path / "ds"
     out.mkdir()
     for name in ("..descriptor_field.npz.partial-a1.npz.partial-b2.npz", ".dataset.json.partial-c3"):
