@@ -108,3 +108,30 @@ def test_a_new_section_goes_after_the_named_one(tmp_path: Path) -> None:
     text = results.read_text()
     assert text.index("<!-- end a -->") < text.index("<!-- begin b -->") < text.index("<!-- begin c -->")
     assert text.count("<!-- begin b -->") == 1 and "body b2" in text and "body b\n" not in text
+
+
+def test_shipped_table_keeps_the_rows_of_networks_not_retrained(tmp_path: Path) -> None:
+    """train_shipped.py's rows of an earlier run, in the older layout (no scenes, no commit cell) or the
+    current one, are read back with their own scenes and commit."""
+    import train_shipped
+
+    results = tmp_path / "RESULTS.md"
+    old = (
+        "| object | method | steps | minutes | images/s | final loss | MB |\n|---|---|---|---|---|---|---|\n"
+        "| shaft | not-shipped | 6000 | 80.8 | 9.9 | 0.067 | 2.5 |\n"
+    )
+    _results.record_section("shipped-shaft", "S", old, path=results)
+    rows = train_shipped.recorded_rows("shipped-shaft", path=results)
+    commit = _results.commit_description()
+    assert rows == {
+        "not-shipped": {
+            "object": "shaft", "method": "not-shipped", "steps": "6000", "minutes": "80.8", "images/s": "9.9",
+            "final loss": "0.067", "MB": "2.5", "scenes": "n/a", "commit": commit,
+        }
+    }  # fmt: skip
+    current = "| " + " | ".join(train_shipped.TABLE_COLUMNS) + " |\n|" + "---|" * len(train_shipped.TABLE_COLUMNS)
+    current += "\n| shaft | supervised-edge | 32 | 6000 | 40.0 | 20.0 | 0.05 | 2.6 | abc1234 |\n"
+    _results.record_section("shipped-shaft", "S", current, path=results)
+    row = train_shipped.recorded_rows("shipped-shaft", path=results)["supervised-edge"]
+    assert (row["scenes"], row["commit"], row["minutes"]) == ("32", "abc1234", "40.0")
+    assert train_shipped.recorded_rows("shipped-toolcap", path=results) == {}
