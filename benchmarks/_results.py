@@ -103,6 +103,17 @@ def utc_now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
 
 
+def _section_pattern(name: str) -> re.Pattern[str]:
+    """RESULTS.md's section ``name``, from its begin comment to its end comment and the newline after."""
+    return re.compile(rf"<!-- begin {re.escape(name)} -->(.*?)<!-- end {re.escape(name)} -->\n?", re.S)
+
+
+def read_section(name: str, path: Path = RESULTS_PATH) -> str | None:
+    """The text of the section ``name`` of RESULTS.md between its begin and end comments; None when absent."""
+    match = _section_pattern(name).search(path.read_text()) if path.exists() else None
+    return None if match is None else match.group(1)
+
+
 def record_section(
     name: str, title: str, body_markdown: str, path: Path = RESULTS_PATH, after: str | None = None
 ) -> str:
@@ -120,7 +131,7 @@ def record_section(
         if path.exists()
         else "# Benchmark results\n\nEvery figure below was written by the script named in its section.\n\n"
     )
-    pattern = re.compile(rf"<!-- begin {re.escape(name)} -->.*?<!-- end {re.escape(name)} -->\n?", re.S)
+    pattern = _section_pattern(name)
     end_of_after = f"<!-- end {after} -->\n" if after else None
     if pattern.search(text):
         text = pattern.sub(lambda _: section, text)

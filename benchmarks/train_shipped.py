@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _results import RESULTS_PATH, commit_description, record_section  # noqa: E402
+from _results import RESULTS_PATH, commit_description, read_section, record_section  # noqa: E402
 from check_shipped import record_regenerated  # noqa: E402
 
 from don_gym.build import DatasetConfig, build_dataset  # noqa: E402
@@ -183,12 +183,11 @@ def recorded_rows(section: str, path: Path = RESULTS_PATH) -> dict[str, dict[str
     """The rows of the table in RESULTS.md's section ``section``, by method, as column -> cell. A row without a
     ``scenes`` cell takes it from its shipped network's metadata, one without a ``commit`` cell the section's
     commit line ("not recorded" when it has none)."""
-    text = path.read_text() if path.exists() else ""
-    match = re.search(rf"<!-- begin {re.escape(section)} -->(.*?)<!-- end {re.escape(section)} -->", text, re.S)
-    if match is None:
+    text = read_section(section, path)
+    if text is None:
         return {}
-    commit_line = re.search(r"^- Commit: (.+)$", match.group(1), re.M)
-    lines = [line.strip() for line in match.group(1).splitlines() if line.strip().startswith("|")]
+    commit_line = re.search(r"^- Commit: (.+)$", text, re.M)
+    lines = [line.strip() for line in text.splitlines() if line.strip().startswith("|")]
     if len(lines) < 3:
         return {}
     header = [cell.strip() for cell in lines[0].strip("|").split("|")]
