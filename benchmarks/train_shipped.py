@@ -38,6 +38,7 @@ from don_gym.checkpoints import read_checkpoint_metadata, restamp_checkpoint  # 
 from don_gym.cli import parse_size  # noqa: E402
 from don_gym.dataset import FIELD_FILE  # noqa: E402
 from don_gym.descriptors import DescriptorField  # noqa: E402
+from don_gym.errors import DonGymError  # noqa: E402
 from don_gym.objects import load_object  # noqa: E402
 from don_gym.train import TrainConfig, train  # noqa: E402
 from don_gym.zoo import SHIPPED_DIR  # noqa: E402
@@ -58,6 +59,21 @@ def restamp_shipped(object_name: str, method: str, data: Path) -> None:
     candidates = [DescriptorField.load(data / FIELD_FILE)] if (data / FIELD_FILE).is_file() else []
     _, done = restamp_checkpoint(target, load_object(object_name), candidates)
     print(f"{object_name}/{method}: {done}")
+
+
+def check_runs_match(work: Path, object_name: str, methods: list[str], scenes: int) -> None:
+    """Refuse a work directory whose runs of ``object_name`` were trained on another number of scenes:
+    building the dataset would grow it under them, and resuming a finished run would ship its network
+    as trained on ``scenes``."""
+    for method in methods:
+        run = work / f"run_{object_name}_{method}"
+        saved = [*sorted(run.glob("checkpoints/step_*.safetensors")), *run.glob("model.safetensors")]
+        trained_on = read_checkpoint_metadata(saved[-1]).extra.get("dataset_scenes") if saved else None
+        if trained_on is not None and trained_on != scenes:
+            raise DonGymError(
+                f"{run}: a run on {trained_on} scenes, not the {scenes} asked; pass --scenes {trained_on} to "
+                "continue it, or another --work"
+            )
 
 
 def main() -> None:
@@ -112,6 +128,7 @@ def main() -> None:
             image_size=args.size,
             sensor="d435",
         )
+        check_runs_match(work, object_name, args.methods, scenes[object_name])
         start = time.perf_counter()
         report = build_dataset(config, data)
         print(f"{object_name}: dataset {report.frames_written} new frames in {time.perf_counter() - start:.0f} s")
@@ -156,9 +173,10 @@ def main() -> None:
         section = f"shipped-{object_name}"
         # A run of some methods keeps the rows of the others: they describe networks still shipped.
         kept = {} if args.quick else recorded_rows(section)
-        table = [kept[m] for m in METHODS if m in kept and m not in rows[object_name]]
-        table += list(rows[object_name].values())
-        table.sort(key=lambda row: METHODS.index(row["method"]) if row["method"] in METHODS else len(METHODS))
+        table = sorted(
+            {**kept, **rows[object_name]}.values(),
+            key=lambda row: METHODS.index(row["method"]) if row["method"] in METHODS else len(METHODS),
+        )
         body = f"""Datasets: the table's scenes x {args.frames} frames, {width}x{height}, sensor `d435`, TinyRenderer,
 seed 0. Training: `resnet-lite`, batch {args.batch_size} (images, or image pairs for self-supervised),
 {crop_width}x{crop_height} object-centred crops, Adam lr 1e-3 x0.9 every 250 steps, seed 0, {args.threads} torch
@@ -206,4 +224,7 @@ def recorded_rows(section: str, path: Path = RESULTS_PATH) -> dict[str, dict[str
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except DonGymError as exc:  # a bad option or work directory: one line, as the don-gym CLI says it
+        sys.exit(f"train_shipped.py: {exc}")

@@ -135,3 +135,20 @@ def test_shipped_table_keeps_the_rows_of_networks_not_retrained(tmp_path: Path) 
     row = train_shipped.recorded_rows("shipped-shaft", path=results)["supervised-edge"]
     assert (row["scenes"], row["commit"], row["minutes"]) == ("32", "abc1234", "40.0")
     assert train_shipped.recorded_rows("shipped-toolcap", path=results) == {}
+
+
+def test_shipped_runs_trained_on_other_scenes_are_refused(tmp_path: Path) -> None:
+    """train_shipped.py does not resume (and ship) a run made on another number of scenes than asked."""
+    import train_shipped
+
+    from don_gym.errors import DonGymError
+    from don_gym.zoo import SHIPPED_DIR
+
+    network = SHIPPED_DIR / "shaft" / "supervised-edge.safetensors"
+    trained_on = train_shipped.read_checkpoint_metadata(network).extra["dataset_scenes"]
+    run = tmp_path / "run_shaft_supervised-edge"
+    (run / "checkpoints").mkdir(parents=True)
+    shutil.copyfile(network, run / "checkpoints" / "step_000100.safetensors")
+    train_shipped.check_runs_match(tmp_path, "shaft", ["supervised-edge", "supervised-mask"], trained_on)
+    with pytest.raises(DonGymError, match=rf"run_shaft_supervised-edge: a run on {trained_on} scenes, not the 7"):
+        train_shipped.check_runs_match(tmp_path, "shaft", ["supervised-edge"], 7)
