@@ -689,7 +689,6 @@ def train(
         wall_s_before = _wall_s_before(run_path, saved)
     elif run_path is not None:
         run_path.mkdir(parents=True, exist_ok=True)
-    if run_path is not None:
         write_text_atomic(run_path / RUN_FILES["config"], json.dumps(_jsonable(config), indent=1) + "\n")
     save_every = save_every or max(1, int(total_timesteps) // 10)
     vec_env = make_vec_env(algorithm, int(n_envs), seed, env_kwargs, vectorize, don_device)
@@ -703,15 +702,17 @@ def train(
             custom = {"policy_kwargs": kwargs["policy_kwargs"]}
             last = run_path / RUN_FILES["last_model"]
             model = algo_class.load(last, env=vec_env, device=device, custom_objects=custom)
+        else:
+            model = algo_class(policy, vec_env, seed=seed, device=device, verbose=0, **kwargs)
+        remaining = int(total_timesteps) - int(model.num_timesteps)
+        if remaining > 0 and resume:
             buffer = run_path / RUN_FILES["last_buffer"]
             if getattr(model, "replay_buffer", None) is not None and buffer.is_file():
                 with warnings.catch_warnings():
                     # HER cuts the episode that was running at the save: the envs restart, as it assumes.
                     warnings.filterwarnings("ignore", message="The last trajectory in the replay buffer")
                     model.load_replay_buffer(buffer)
-        else:
-            model = algo_class(policy, vec_env, seed=seed, device=device, verbose=0, **kwargs)
-        remaining = int(total_timesteps) - int(model.num_timesteps)
+            write_text_atomic(run_path / RUN_FILES["config"], json.dumps(_jsonable(config), indent=1) + "\n")
         if remaining > 0:
             description = f"{algorithm.upper()} train"
             callback = _curve_callback(
@@ -721,6 +722,9 @@ def train(
     finally:
         vec_env.close()
     wall_s = time.perf_counter() - start
+    if remaining <= 0:
+        # A finished run is only loaded: its files, its training time and its config stay as they were.
+        return RLTrainResult(model=model, curve=curve, wall_s=wall_s, run_dir=run_path, run_wall_s=wall_s_before)
     total_wall_s = wall_s_before + wall_s
     if run_path is not None:
         # The last state is the final one: --resume on a finished run trains no further.

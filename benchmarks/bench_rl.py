@@ -17,9 +17,12 @@ Parts (``--only``, repeatable; all by default):
 Every policy is evaluated on the same held-out seeds (``reset(seed=EVAL_SEED + i)``) with 95 % Wilson
 intervals. Every training run writes its learning curve (CSV, PNG), configuration and seeds (JSON) and
 periodic saves into ``--out`` (``runs/rl`` by default, a temporary directory with ``--quick``);
-``--resume`` continues interrupted runs there. Figures go to ``benchmarks/figures/``, results to one section
-of ``benchmarks/RESULTS.md`` per part that ran (``rl-throughput``, ``rl-ppo``, ``rl-images``, ``rl-sac``;
-not with ``--quick``).
+``--resume`` continues interrupted runs there. The training runs of all parts run ``--jobs`` at a time (one
+process each, one torch thread each: the same runs as one after the other; by default as many as there are
+CPUs), then each part evaluates. Figures go to ``benchmarks/figures/``, results to one section of
+``benchmarks/RESULTS.md`` per part that ran (``rl-throughput``, ``rl-ppo``, ``rl-images``, ``rl-sac``; not with
+``--quick``); a part run with settings other than the defaults (e.g. the longer recipes below) records into
+``rl-<part>-custom`` and ``<figure>_custom.png`` instead, beside the default run's figures.
 
     python benchmarks/bench_rl.py                      # full CPU run, all parts (~2.5 h on 2 cores)
     python benchmarks/bench_rl.py --only sac --resume  # one part, continuing its runs in runs/rl
@@ -48,9 +51,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
+import os
 import sys
 import tempfile
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -60,7 +66,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _results import FIGURES, REPO_ROOT, record_section  # noqa: E402
+from _results import FIGURES, REPO_ROOT, freeze_commit_description, record_section  # noqa: E402
 
 from don_gym.agents import AxisGraspAgent, rl  # noqa: E402
 from don_gym.errors import DonGymError  # noqa: E402
@@ -124,13 +130,108 @@ def _shown(path: Path) -> str:
         return str(path)
 
 
-def _train(args: argparse.Namespace, name: str, algorithm: str, steps: int, **kwargs: Any) -> rl.RLTrainResult:
-    run_dir = args.out / name
+@dataclass(frozen=True)
+class TrainingRun:
+    """One training run of a part: its directory under ``--out``, the algorithm, its env steps and the
+    other arguments of :func:`rl.train`."""
+
+    name: str
+    algorithm: str
+    steps: int
+    kwargs: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def renders(self) -> bool:
+        """Whether its envs render wrist images and run the DON: the slow runs, started first."""
+        return self.algorithm == "ppo-images" or self.kwargs.get("env_kwargs", {}).get("keypoints") == "don"
+
+
+def _train(args: argparse.Namespace, run: TrainingRun, progress: bool = True) -> rl.RLTrainResult:
+    """Train ``run`` in this process, or load it when finished (``--resume``, or trained by :func:`train_runs`)."""
+    run_dir = args.out / run.name
     resume = args.resume and (run_dir / rl.RUN_FILES["last_model"]).is_file()
     return rl.train(
-        algorithm, steps, seed=args.seed, run_dir=run_dir, resume=resume, device=args.train_device,
-        don_device=args.device, **kwargs,
+        run.algorithm, run.steps, seed=args.seed, run_dir=run_dir, resume=resume, device=args.train_device,
+        don_device=args.device, progress=progress, **run.kwargs,
     )  # fmt: skip
+
+
+def _train_in_child(args: argparse.Namespace, run: TrainingRun, log_path: Path) -> None:
+    """A worker process of :func:`train_runs`: its output (and its env subprocesses') goes to ``log_path``."""
+    log = open(log_path, "a", buffering=1)  # noqa: SIM115 -- held open for the life of the process
+    os.dup2(log.fileno(), 1)
+    os.dup2(log.fileno(), 2)
+    sys.stdout = sys.stderr = log
+    torch.set_num_threads(1)  # as the parent: a run repeats exactly, wherever it trains
+    try:
+        _train(args, run, progress=False)
+    except DonGymError as exc:
+        print(f"{run.name}: {exc}")
+        sys.exit(2)
+
+
+def _run_progress(run_dir: Path) -> int:
+    """Env steps of a run's last save (0 before its first)."""
+    try:
+        return int(json.loads((run_dir / rl.RUN_FILES["last_progress"]).read_text())["timesteps"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return 0
+
+
+def _last_line(path: Path) -> str:
+    try:
+        lines = [line for line in path.read_text(errors="replace").splitlines() if line.strip()]
+    except OSError:
+        return ""
+    return lines[-1].strip() if lines else ""
+
+
+def train_runs(args: argparse.Namespace, runs: list[TrainingRun], jobs: int) -> None:
+    """Train ``runs`` ``jobs`` at a time, each in its own process with one torch thread, the rendering ones
+    first; each process writes its output to ``<run>.log`` in ``--out``. Every run ends saved and finished, so
+    that the parts then load it (``args.resume`` is set). A run that fails stops the others (their last saves
+    stay, for ``--resume``) and raises :class:`DonGymError` naming it."""
+    from tqdm import tqdm
+
+    context = multiprocessing.get_context("spawn")  # no PyBullet client or torch state is forked
+    pending = sorted(runs, key=lambda run: not run.renders)
+    running: dict[str, tuple[Any, TrainingRun]] = {}
+    args.out.mkdir(parents=True, exist_ok=True)
+    bar = tqdm(total=sum(run.steps for run in runs), desc=f"training {len(runs)} runs, {jobs} at once", unit="step")
+    done_steps = 0
+    try:
+        while pending or running:
+            while pending and len(running) < jobs:
+                run = pending.pop(0)
+                log_path = args.out / f"{run.name}.log"
+                process = context.Process(target=_train_in_child, args=(args, run, log_path), name=run.name)
+                process.start()
+                running[run.name] = (process, run)
+            time.sleep(2.0)
+            for name, (process, run) in list(running.items()):
+                if process.is_alive():
+                    continue
+                process.join()
+                del running[name]
+                if process.exitcode != 0:
+                    reason = _last_line(args.out / f"{name}.log") or f"exit status {process.exitcode}"
+                    raise DonGymError(f"training run {name!r} failed: {reason} (log: {args.out / f'{name}.log'})")
+                done_steps += run.steps
+            steps = done_steps + sum(min(_run_progress(args.out / n), r.steps) for n, (_, r) in running.items())
+            bar.update(steps - bar.n)
+            bar.set_postfix_str(", ".join(running))
+    finally:
+        for process, _run in running.values():
+            process.terminate()
+            process.join()
+        bar.close()
+    args.resume = True  # every run is now finished in --out: the parts load them
+
+
+def _figure(args: argparse.Namespace, part: str, stem: str) -> Path:
+    """Where a part's figure goes: ``<stem>_custom.png`` when the part runs with other settings (its RESULTS
+    section is ``rl-<part>-custom``), so that it never overwrites the default run's figure."""
+    return args.figures / f"{stem}{'_custom' if part in getattr(args, 'custom_parts', ()) else ''}.png"
 
 
 def _curve_entry(label: str, curve: rl.LearningCurve, window: int) -> tuple[str, Any]:
@@ -198,26 +299,49 @@ def _axis_grasp_policy(keypoint_model: str, image_size: tuple[int, int], sensor:
     return agent.env, agent.act
 
 
-def run_ppo(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[str, Any]]:
-    """PPO on grasp from DON keypoints and from a model of the DON, residual actions in the keypoints' axis
-    frame, dense reward, ``--ppo-steps`` one-step episodes each; evaluated with baselines on held-out seeds."""
-    base_kwargs = {
+def _ppo_env_kwargs(args: argparse.Namespace, keypoint_model: str) -> dict[str, Any]:
+    return {
         "keypoint_model": keypoint_model,
         "image_size": args.image_size,
         "sensor": args.sensor,
         "reward_type": "dense",
         "action_frame": "axis",
     }
+
+
+def _ppo_rollout(args: argparse.Namespace, algorithm: str) -> dict[str, int]:
+    """PPO's ``n_steps`` (per env) and ``batch_size`` for ``--ppo-rollout`` env steps over ``--ppo-envs``."""
+    n_steps = max(1, args.ppo_rollout // args.ppo_envs)
+    batch_size = min(rl.DEFAULT_ALGO_KWARGS[algorithm]["batch_size"], n_steps * args.ppo_envs)
+    return {"n_steps": n_steps, "batch_size": batch_size}
+
+
+def ppo_runs(args: argparse.Namespace, keypoint_model: str) -> list[TrainingRun]:
+    """The PPO part's runs: from DON keypoints, and from the model of the DON."""
+    base_kwargs = _ppo_env_kwargs(args, keypoint_model)
+    return [
+        TrainingRun(
+            f"ppo_{source}",
+            "ppo",
+            args.ppo_steps,
+            {
+                "n_envs": args.ppo_envs,
+                "env_kwargs": base_kwargs | {"keypoints": source},
+                "algo_kwargs": _ppo_rollout(args, "ppo"),
+            },
+        )
+        for source in ("don", "simulated")
+    ]
+
+
+def run_ppo(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[str, Any]]:
+    """PPO on grasp from DON keypoints and from a model of the DON, residual actions in the keypoints' axis
+    frame, dense reward, ``--ppo-steps`` one-step episodes each; evaluated with baselines on held-out seeds."""
+    base_kwargs = _ppo_env_kwargs(args, keypoint_model)
     don_kwargs = base_kwargs | {"keypoints": "don"}
     sim_kwargs = base_kwargs | {"keypoints": "simulated"}
-    n_steps = max(1, args.ppo_rollout // args.ppo_envs)
-    algo = {"n_steps": n_steps, "batch_size": min(rl.DEFAULT_ALGO_KWARGS["ppo"]["batch_size"], n_steps * args.ppo_envs)}
-    trained = _train(
-        args, "ppo_don", "ppo", args.ppo_steps, n_envs=args.ppo_envs, env_kwargs=don_kwargs, algo_kwargs=algo
-    )
-    simulated = _train(
-        args, "ppo_simulated", "ppo", args.ppo_steps, n_envs=args.ppo_envs, env_kwargs=sim_kwargs, algo_kwargs=algo
-    )
+    n_steps = _ppo_rollout(args, "ppo")["n_steps"]
+    trained, simulated = (_train(args, run) for run in ppo_runs(args, keypoint_model))
     n = args.ppo_eval_episodes
     env = rl.make_ppo_env(**don_kwargs)
     results = {"PPO, DON keypoints": rl.evaluate(env, rl.model_policy(trained.model), n, EVAL_SEED, "eval PPO")}
@@ -252,7 +376,7 @@ def run_ppo(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
     base.close()
 
     window = max(10, min(50, len(trained.curve.successes) // 5))
-    figure = args.figures / "rl_ppo_grasp.png"
+    figure = _figure(args, "ppo", "rl_ppo_grasp")
     plot_learning_curve(
         [
             _curve_entry("PPO, DON keypoints (stochastic policy)", trained.curve, window),
@@ -290,21 +414,30 @@ def run_ppo(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
     return "\n".join(body), {f"ppo/{name}": _summary(r) for name, r in results.items()}
 
 
-def run_images(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[str, Any]]:
-    """PPO from descriptor images (uint8, SB3's NatureCNN), actions spanning the whole action box."""
-    env_kwargs = {
+def _images_env_kwargs(args: argparse.Namespace, keypoint_model: str) -> dict[str, Any]:
+    return {
         "keypoint_model": keypoint_model,
         "image_size": args.image_size,
         "cnn_size": tuple(args.cnn_size),
         "sensor": args.sensor,
         "reward_type": "dense",
     }
-    n_steps = max(1, args.ppo_rollout // args.ppo_envs)
-    batch = min(rl.DEFAULT_ALGO_KWARGS["ppo-images"]["batch_size"], n_steps * args.ppo_envs)
-    trained = _train(
-        args, "ppo_images", "ppo-images", args.images_steps, n_envs=args.ppo_envs, env_kwargs=env_kwargs,
-        algo_kwargs={"n_steps": n_steps, "batch_size": batch},
-    )  # fmt: skip
+
+
+def images_runs(args: argparse.Namespace, keypoint_model: str) -> list[TrainingRun]:
+    """The images part's run: PPO from descriptor images."""
+    kwargs = {
+        "n_envs": args.ppo_envs,
+        "env_kwargs": _images_env_kwargs(args, keypoint_model),
+        "algo_kwargs": _ppo_rollout(args, "ppo-images"),
+    }
+    return [TrainingRun("ppo_images", "ppo-images", args.images_steps, kwargs)]
+
+
+def run_images(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[str, Any]]:
+    """PPO from descriptor images (uint8, SB3's NatureCNN), actions spanning the whole action box."""
+    env_kwargs = _images_env_kwargs(args, keypoint_model)
+    (trained,) = (_train(args, run) for run in images_runs(args, keypoint_model))
     extractor = type(trained.model.policy.features_extractor.extractors["descriptors"]).__name__
     env = rl.make_image_env(**env_kwargs)
     n = args.ppo_eval_episodes
@@ -316,7 +449,7 @@ def run_images(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict
     }
     env.close()
     window = max(10, min(50, len(trained.curve.successes) // 5))
-    figure = args.figures / "rl_ppo_images.png"
+    figure = _figure(args, "images", "rl_ppo_images")
     plot_learning_curve(
         [_curve_entry("PPO, descriptor images (stochastic policy)", trained.curve, window)],
         figure,
@@ -338,27 +471,50 @@ def run_images(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict
 
 
 # ------------------------------------------------------------------------------------------ SAC
-def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[str, Any]]:
-    """SAC + HER on ee with goal ``--sac-goal``, one run per keypoint source, same seeds and settings."""
-    base_kwargs = {
+def _sac_env_kwargs(args: argparse.Namespace, keypoint_model: str) -> dict[str, Any]:
+    return {
         "keypoint_model": keypoint_model,
         "image_size": args.image_size,
         "sensor": args.sensor,
         "max_steps": args.sac_max_steps,
         "goal": args.sac_goal,
     }
+
+
+def _sac_steps(args: argparse.Namespace) -> dict[str, int]:
+    return {"simulated": args.sac_steps, "true": args.sac_steps, "don": args.sac_don_steps}
+
+
+def sac_runs(args: argparse.Namespace, keypoint_model: str) -> list[TrainingRun]:
+    """The SAC part's runs, one per keypoint source in :data:`SAC_SOURCES`' order, same seeds and settings."""
     algo = {"learning_starts": args.sac_learning_starts}
     if args.sac_envs > 1:
         algo["gradient_steps"] = -1  # a gradient step per env step, whatever the number of envs
-    steps = {"simulated": args.sac_steps, "true": args.sac_steps, "don": args.sac_don_steps}
-    train_kwargs = base_kwargs | ({"hand_starts": args.sac_hand_starts} if args.sac_hand_starts else {})
-    runs = {}
-    for source in SAC_SOURCES:
-        vectorize = args.vectorize if (source == "don" and args.sac_envs > 1) else None
-        runs[source] = _train(
-            args, f"sac_{args.sac_goal}_{source}", "sac", steps[source], n_envs=args.sac_envs,
-            env_kwargs=train_kwargs | {"keypoints": source}, algo_kwargs=algo, vectorize=vectorize,
-        )  # fmt: skip
+    train_kwargs = _sac_env_kwargs(args, keypoint_model)
+    if args.sac_hand_starts:
+        train_kwargs["hand_starts"] = args.sac_hand_starts
+    steps = _sac_steps(args)
+    return [
+        TrainingRun(
+            f"sac_{args.sac_goal}_{source}",
+            "sac",
+            steps[source],
+            {
+                "n_envs": args.sac_envs,
+                "env_kwargs": train_kwargs | {"keypoints": source},
+                "algo_kwargs": algo,
+                "vectorize": args.vectorize if (source == "don" and args.sac_envs > 1) else None,
+            },
+        )
+        for source in SAC_SOURCES
+    ]
+
+
+def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[str, Any]]:
+    """SAC + HER on ee with goal ``--sac-goal``, one run per keypoint source, same seeds and settings."""
+    base_kwargs = _sac_env_kwargs(args, keypoint_model)
+    steps = _sac_steps(args)
+    runs = {source: _train(args, run) for source, run in zip(SAC_SOURCES, sac_runs(args, keypoint_model), strict=True)}
     n = args.sac_eval_episodes
     results = {}
     for start, hand_starts in SAC_EVAL_STARTS.items():
@@ -391,7 +547,7 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         )
         env.close()
     window = max(3, min(50, min(len(r.curve.successes) for r in runs.values()) // 5))
-    figure = args.figures / f"rl_sac_her_{args.sac_goal}.png"
+    figure = _figure(args, "sac", f"rl_sac_her_{args.sac_goal}")
     baseline = results[curve_baseline]
     baseline_label = f"random policy, {curve_baseline.split(':')[0]} ({len(baseline.successes)} episodes)"
     plot_learning_curve(
@@ -453,6 +609,28 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
 
 
 # ----------------------------------------------------------------------------------------- main
+#: The training runs of each part that has any.
+PART_RUNS = {"ppo": ppo_runs, "images": images_runs, "sac": sac_runs}
+#: The options that shape each part's figures: a run with any of them off its default records its part in a
+#: section of its own (``rl-<part>-custom``), beside the default run's.
+PART_SETTINGS = {
+    "throughput": ("throughput_envs", "throughput_steps", "device", "vectorize"),
+    "ppo": ("ppo_envs", "ppo_steps", "ppo_rollout", "ppo_eval_episodes"),
+    "images": ("ppo_envs", "ppo_rollout", "images_steps", "cnn_size", "ppo_eval_episodes"),
+    "sac": (
+        "sac_goal", "sac_envs", "sac_steps", "sac_don_steps", "sac_max_steps", "sac_learning_starts",
+        "sac_eval_episodes", "sac_hand_starts", "vectorize",
+    ),
+}  # fmt: skip
+COMMON_SETTINGS = ("keypoint_model", "sensor", "seed", "image_size", "train_device")
+
+
+def _custom_settings(parser: argparse.ArgumentParser, args: argparse.Namespace, part: str) -> list[str]:
+    """The options of ``part`` (and those common to every part) that differ from their defaults; ``args`` as
+    parsed, before main resolves the defaults left to it (``None``)."""
+    return [name for name in COMMON_SETTINGS + PART_SETTINGS[part] if getattr(args, name) != parser.get_default(name)]
+
+
 def keypoint_image_size(keypoint_model: str) -> tuple[int, int]:
     """(width, height) the keypoint network was trained at; 160x120 for the oracle (no network)."""
     if keypoint_model == "oracle":
@@ -525,6 +703,11 @@ def _parser() -> argparse.ArgumentParser:
         help="shares of SAC training episodes that start with the hand at or on the part (HandStarts; "
         f"'none' for none; default {','.join(f'{k}={v}' for k, v in DEFAULT_HAND_STARTS.items())})",
     )  # fmt: skip
+    parser.add_argument(
+        "--jobs", type=_positive, default=None,
+        help="training runs at once, each in its own process with one torch thread (default: the number of CPUs, "
+        "at most the number of runs); 1 trains them in turn in this process. The runs come out the same either way",
+    )  # fmt: skip
     parser.add_argument("--quick", action="store_true", help="tiny budgets into a temporary directory, records nothing")
     return parser
 
@@ -535,12 +718,16 @@ def main(argv: list[str] | None = None) -> int:
     rl.require_sb3()
     torch.set_num_threads(1)
     parts = list(dict.fromkeys(args.only or PARTS))
+    custom = {part: _custom_settings(parser, args, part) for part in parts}
+    args.custom_parts = {part for part in parts if custom[part]}
     if args.quick:
         args.throughput_envs, args.throughput_steps = [1, 2], 2
         args.ppo_envs, args.ppo_rollout, args.ppo_steps, args.ppo_eval_episodes, args.images_steps = 1, 8, 8, 2, 8
         args.sac_steps, args.sac_don_steps, args.sac_max_steps = 100, 20, 10
         args.sac_learning_starts, args.sac_eval_episodes = 20, 2
     records = not args.quick
+    if records:
+        freeze_commit_description()  # the code the runs start from, whatever is committed during hours of training
     scratch = Path(tempfile.mkdtemp(prefix="don_gym_rl_")) if args.quick else None
     args.out = args.out or (scratch / "runs" if scratch else DEFAULT_OUT)
     # Runs that record nothing keep their figures out of benchmarks/figures too.
@@ -569,16 +756,39 @@ def main(argv: list[str] | None = None) -> int:
 
     start = time.perf_counter()
     runners = {"throughput": run_throughput, "ppo": run_ppo, "images": run_images, "sac": run_sac}
+    training = [run for part in parts if part in PART_RUNS for run in PART_RUNS[part](args, keypoint_model)]
+    jobs = min(args.jobs or len(os.sched_getaffinity(0)), max(len(training), 1))
     sections, summary = {}, {"keypoint_model": keypoint_model, "eval_seeds": [EVAL_SEED], "seed": args.seed}
-    for part in parts:
+    part_wall_s, training_wall_s = {}, 0.0
+    # The throughput part times the DON: it runs first, alone, before any training starts.
+    for part in sorted(parts, key=lambda part: part != "throughput"):
         part_start = time.perf_counter()
         try:
+            if part != "throughput" and jobs > 1 and not training_wall_s:
+                train_runs(args, training, jobs)
+                training_wall_s = time.perf_counter() - part_start
+                part_start = time.perf_counter()
             text, results = runners[part](args, keypoint_model)
         except DonGymError as exc:
             print(f"bench_rl: {part}: {exc}", file=sys.stderr)
             return 2
-        sections[part] = text + f"\n\nWall time of this part {(time.perf_counter() - part_start) / 60:.1f} min."
+        sections[part], part_wall_s[part] = text, time.perf_counter() - part_start
         summary |= results
+    total_wall_s = time.perf_counter() - start
+    for part in sections:
+        if part in PART_RUNS and training_wall_s:
+            wall = (
+                f"Wall time: the {len(training)} training runs of this command, {jobs} at once (`--jobs`), "
+                f"{training_wall_s / 60:.1f} min; then this part's evaluation {part_wall_s[part] / 60:.1f} min; "
+                f"the whole command {total_wall_s / 60:.1f} min."
+            )
+        else:
+            wall = (
+                f"Wall time of this part {part_wall_s[part] / 60:.1f} min; "
+                f"the whole command {total_wall_s / 60:.1f} min."
+            )
+        sections[part] += "\n\n" + wall
+    sections = {part: sections[part] for part in parts}  # the order asked, throughput first or not
     write_text_atomic(summary_path, json.dumps(previous_summary | summary, indent=1) + "\n")
     oracle_note = (
         " The keypoints come from the oracle (descriptors rendered from the true pose): this checks the "
@@ -592,13 +802,18 @@ def main(argv: list[str] | None = None) -> int:
         "`info['is_success']` (grasp_and_place, or the lift goal) at the end of an episode, 95 % Wilson intervals."
     )
     print(intro + "\n\n" + "\n\n".join(sections.values()))
-    print(f"Total wall time {(time.perf_counter() - start) / 60:.1f} min")
+    print(f"Total wall time {total_wall_s / 60:.1f} min")
     print(f"runs, figures and summary.json: {args.out} {args.figures}")
     if records:
         for part, text in sections.items():
             # A new section goes after the one of the part before it, keeping PARTS' order in RESULTS.md.
             after = f"rl-{PARTS[PARTS.index(part) - 1]}" if PARTS.index(part) else None
-            record_section(f"rl-{part}", PART_TITLES[part], intro + "\n\n" + text, after=after)
+            key, title = f"rl-{part}", PART_TITLES[part]
+            if custom[part]:
+                # Beside the default run's figures, not over them (e.g. the longer recipes of the docstring).
+                key, after = f"{key}-custom", key
+                title = title.replace(" (bench_rl.py)", ", other settings (bench_rl.py)")
+            record_section(key, title, intro + "\n\n" + text, after=after)
     else:
         print("(--quick: RESULTS.md not updated)")
     return 0

@@ -1,0 +1,74 @@
+"""bench_rl's training stage: runs trained side by side come out as trained in turn; a failing one is named."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("stable_baselines3")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+import bench_rl  # noqa: E402
+
+from don_gym.agents import rl  # noqa: E402
+from don_gym.errors import DonGymError  # noqa: E402
+
+TINY_SAC = {"learning_starts": 10, "batch_size": 8, "buffer_size": 500, "policy_kwargs": {"net_arch": [8, 8]}}
+TINY_PPO = {"n_steps": 8, "batch_size": 8, "policy_kwargs": {"net_arch": [8, 8]}}
+
+
+def _args(out: Path, *options: str):
+    args = bench_rl._parser().parse_args(["--out", str(out), *options])
+    args.image_size, args.device = (64, 48), "cpu"
+    return args
+
+
+def _runs() -> list[bench_rl.TrainingRun]:
+    sac_env = {"keypoints": "true", "goal": "lift", "max_steps": 5, "image_size": (64, 48)}
+    ppo_env = {"keypoints": "true", "image_size": (64, 48), "reward_type": "dense", "action_frame": "axis"}
+    return [
+        bench_rl.TrainingRun("sac_true", "sac", 30, {"env_kwargs": sac_env, "algo_kwargs": TINY_SAC}),
+        bench_rl.TrainingRun("ppo_true", "ppo", 16, {"env_kwargs": ppo_env, "algo_kwargs": TINY_PPO}),
+    ]
+
+
+def _parameters(model) -> np.ndarray:
+    return torch.cat([p.detach().flatten() for p in model.policy.parameters()]).numpy()
+
+
+def test_runs_trained_side_by_side_come_out_as_trained_in_turn(tmp_path: Path) -> None:
+    parallel = _args(tmp_path / "parallel")
+    bench_rl.train_runs(parallel, _runs(), jobs=2)
+    assert parallel.resume  # the parts now load the finished runs
+    in_turn = _args(tmp_path / "in_turn")
+    torch.set_num_threads(1)
+    for run in _runs():
+        loaded = bench_rl._train(parallel, run, progress=False)
+        trained = bench_rl._train(in_turn, run, progress=False)
+        assert loaded.model.num_timesteps == trained.model.num_timesteps == run.steps
+        assert loaded.curve.successes == trained.curve.successes and loaded.curve.returns == trained.curve.returns
+        np.testing.assert_array_equal(_parameters(loaded.model), _parameters(trained.model))
+        assert (tmp_path / "parallel" / f"{run.name}.log").is_file()
+        assert loaded.run_wall_s > 0
+
+
+def test_a_failing_run_is_named_and_stops_the_stage(tmp_path: Path) -> None:
+    bad = bench_rl.TrainingRun("ppo_bad", "ppo", 16, {"env_kwargs": {"keypoints": "nonsense"}})
+    with pytest.raises(DonGymError, match=r"'ppo_bad' failed: .*nonsense"):
+        bench_rl.train_runs(_args(tmp_path), [bad, *_runs()[:1]], jobs=2)
+    assert not (tmp_path / "ppo_bad" / rl.RUN_FILES["model"]).exists()
+
+
+def test_runs_with_other_settings_record_beside_the_default_ones(tmp_path: Path) -> None:
+    parser = bench_rl._parser()
+    default = parser.parse_args([])
+    assert all(bench_rl._custom_settings(parser, default, part) == [] for part in bench_rl.PARTS)
+    longer = parser.parse_args(["--sac-steps", "80000", "--jobs", "1", "--resume"])
+    assert bench_rl._custom_settings(parser, longer, "sac") == ["sac_steps"]
+    assert bench_rl._custom_settings(parser, longer, "ppo") == []
+    other_part = parser.parse_args(["--keypoint-model", "oracle"])
+    assert bench_rl._custom_settings(parser, other_part, "throughput") == ["keypoint_model"]
