@@ -84,6 +84,8 @@ EVAL_SEED = 100_000
 PREFERRED_MODEL = "toolcap/supervised-edge"
 ORACLE_IMAGE_SIZE = (160, 120)  # no network to match: small images keep the oracle runs cheap
 PARTS = ("throughput", "ppo", "images", "sac")
+#: The training stage's progress bar: runs done (fractions for the running ones' saved steps), elapsed time.
+RUNS_BAR = "{desc}: {n:.1f}/{total} runs |{bar}| [{elapsed}{postfix}]"
 #: SAC keypoint sources, in the order of the curves.
 SAC_SOURCES = ("simulated", "don", "true")
 #: SAC evaluation starts: the task's own (the hand observing from above), and the part in the closed hand.
@@ -188,17 +190,20 @@ def _last_line(path: Path) -> str:
 
 def train_runs(args: argparse.Namespace, runs: list[TrainingRun], jobs: int) -> None:
     """Train ``runs`` ``jobs`` at a time, each in its own process with one torch thread, the rendering ones
-    first; each process writes its output to ``<run>.log`` in ``--out``. Every run ends saved and finished, so
-    that the parts then load it (``args.resume`` is set). A run that fails stops the others (their last saves
-    stay, for ``--resume``) and raises :class:`DonGymError` naming it."""
+    (the slowest) first, then by their steps; each process writes its output to ``<run>.log`` in ``--out``.
+    Every run ends saved and finished, so that the parts then load it (``args.resume`` is set). A run that
+    fails stops the others (their last saves stay, for ``--resume``) and raises :class:`DonGymError` naming
+    it."""
     from tqdm import tqdm
 
     context = multiprocessing.get_context("spawn")  # no PyBullet client or torch state is forked
-    pending = sorted(runs, key=lambda run: not run.renders)
+    pending = sorted(runs, key=lambda run: (not run.renders, -run.steps))  # the longest first, roughly
     running: dict[str, tuple[Any, TrainingRun]] = {}
+    finished = 0
     args.out.mkdir(parents=True, exist_ok=True)
-    bar = tqdm(total=sum(run.steps for run in runs), desc=f"training {len(runs)} runs, {jobs} at once", unit="step")
-    done_steps = 0
+    # Counted in runs, each running one by the share of its steps saved so far: steps of the runs cost
+    # from milliseconds (SAC on true keypoints) to a second (a PPO grasp with the DON).
+    bar = tqdm(total=len(runs), desc=f"training, {jobs} runs at once", unit="run", bar_format=RUNS_BAR)
     try:
         while pending or running:
             while pending and len(running) < jobs:
@@ -208,7 +213,7 @@ def train_runs(args: argparse.Namespace, runs: list[TrainingRun], jobs: int) -> 
                 process.start()
                 running[run.name] = (process, run)
             time.sleep(2.0)
-            for name, (process, run) in list(running.items()):
+            for name, (process, _run) in list(running.items()):
                 if process.is_alive():
                     continue
                 process.join()
@@ -216,10 +221,11 @@ def train_runs(args: argparse.Namespace, runs: list[TrainingRun], jobs: int) -> 
                 if process.exitcode != 0:
                     reason = _last_line(args.out / f"{name}.log") or f"exit status {process.exitcode}"
                     raise DonGymError(f"training run {name!r} failed: {reason} (log: {args.out / f'{name}.log'})")
-                done_steps += run.steps
-            steps = done_steps + sum(min(_run_progress(args.out / n), r.steps) for n, (_, r) in running.items())
-            bar.update(steps - bar.n)
-            bar.set_postfix_str(", ".join(running))
+                finished += 1
+            shares = {n: min(_run_progress(args.out / n) / r.steps, 1.0) for n, (_, r) in running.items()}
+            bar.n = finished + sum(shares.values())
+            bar.set_postfix_str(", ".join(f"{n} {share:.0%}" for n, share in shares.items()), refresh=False)
+            bar.refresh()
     finally:
         for process, _run in running.values():
             process.terminate()
