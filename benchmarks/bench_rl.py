@@ -24,7 +24,7 @@ CPUs), then each part evaluates. Figures go to ``benchmarks/figures/``, results 
 ``--quick``); a part run with settings other than the defaults (e.g. the longer recipes below) records into
 ``rl-<part>-custom`` and ``<figure>_custom.png`` instead, beside the default run's figures.
 
-    python benchmarks/bench_rl.py                      # full CPU run, all parts (~2.5 h on 2 cores)
+    python benchmarks/bench_rl.py                      # full CPU run, all parts (~1.5 h on 2 cores)
     python benchmarks/bench_rl.py --only sac --resume  # one part, continuing its runs in runs/rl
     python benchmarks/bench_rl.py --quick              # smoke run of every part (a few minutes), records nothing
 
@@ -32,8 +32,9 @@ Longer CPU recipe for the SAC part, continuing the default runs in ``runs/rl`` (
 again): the DON-keypoint run from its 15,000 default steps to 40,000 (~75 min more on 2 cores), the simulated and
 true runs from 40,000 to 80,000 (~40 min more), at which the true-keypoint policy also lifts from the task's own
 start, then the DON-keypoint run to 60,000 and 80,000 (~60 min more each), at which the DON-trained policy lifts
-the part from the hand as the others do (RESULTS "rl-sac": true 75% from the task's start; DON-trained from the
-hand 25% at 40,000, 65% at 60,000, 100% at 80,000; random 10%)::
+the part from the hand as the others do (RESULTS "rl-sac-custom", beside the default budgets' "rl-sac": true 75%
+from the task's start; DON-trained from the hand 25% at 40,000, 65% at 60,000, 100% at 80,000; random 10%). Times
+are of the runs one after the other; ``--jobs`` trains the three side by side::
 
     python benchmarks/bench_rl.py --only sac --sac-don-steps 40000 --resume
     python benchmarks/bench_rl.py --only sac --sac-don-steps 40000 --sac-steps 80000 --resume
