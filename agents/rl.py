@@ -689,7 +689,6 @@ def train(
         wall_s_before = _wall_s_before(run_path, saved)
     elif run_path is not None:
         run_path.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(run_path / RUN_FILES["config"], json.dumps(_jsonable(config), indent=1) + "\n")
     save_every = save_every or max(1, int(total_timesteps) // 10)
     vec_env = make_vec_env(algorithm, int(n_envs), seed, env_kwargs, vectorize, don_device)
     start = time.perf_counter()
@@ -700,11 +699,13 @@ def train(
     try:
         if resume:
             custom = {"policy_kwargs": kwargs["policy_kwargs"]}
-            last = run_path / RUN_FILES["last_model"]
             model = algo_class.load(last, env=vec_env, device=device, custom_objects=custom)
         else:
             model = algo_class(policy, vec_env, seed=seed, device=device, verbose=0, **kwargs)
         remaining = int(total_timesteps) - int(model.num_timesteps)
+        if remaining > 0 and run_path is not None:
+            # A new run, or one going on to a new total (a finished run is only loaded and keeps its config).
+            write_text_atomic(run_path / RUN_FILES["config"], json.dumps(_jsonable(config), indent=1) + "\n")
         if remaining > 0 and resume:
             buffer = run_path / RUN_FILES["last_buffer"]
             if getattr(model, "replay_buffer", None) is not None and buffer.is_file():
@@ -712,7 +713,6 @@ def train(
                     # HER cuts the episode that was running at the save: the envs restart, as it assumes.
                     warnings.filterwarnings("ignore", message="The last trajectory in the replay buffer")
                     model.load_replay_buffer(buffer)
-            write_text_atomic(run_path / RUN_FILES["config"], json.dumps(_jsonable(config), indent=1) + "\n")
         if remaining > 0:
             description = f"{algorithm.upper()} train"
             callback = _curve_callback(

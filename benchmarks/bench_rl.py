@@ -200,7 +200,6 @@ def train_runs(args: argparse.Namespace, runs: list[TrainingRun], jobs: int) -> 
     context = multiprocessing.get_context("spawn")  # no PyBullet client or torch state is forked
     pending = sorted(runs, key=lambda run: (not run.renders, -run.steps))  # the longest first, roughly
     running: dict[str, tuple[Any, TrainingRun]] = {}
-    finished = 0
     args.out.mkdir(parents=True, exist_ok=True)
     # Counted in runs, each running one by the share of its steps saved so far: steps of the runs cost
     # from milliseconds (SAC on true keypoints) to a second (a PPO grasp with the DON).
@@ -222,9 +221,8 @@ def train_runs(args: argparse.Namespace, runs: list[TrainingRun], jobs: int) -> 
                 if process.exitcode != 0:
                     reason = _last_line(args.out / f"{name}.log") or f"exit status {process.exitcode}"
                     raise DonGymError(f"training run {name!r} failed: {reason} (log: {args.out / f'{name}.log'})")
-                finished += 1
             shares = {n: min(_run_progress(args.out / n) / r.steps, 1.0) for n, (_, r) in running.items()}
-            bar.n = finished + sum(shares.values())
+            bar.n = len(runs) - len(pending) - len(running) + sum(shares.values())
             bar.set_postfix_str(", ".join(f"{n} {share:.0%}" for n, share in shares.items()), refresh=False)
             bar.refresh()
     finally:
@@ -647,7 +645,10 @@ def keypoint_image_size(keypoint_model: str) -> tuple[int, int]:
 
 
 def _positive(text: str) -> int:
-    value = int(text)
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
     if value < 1:
         raise argparse.ArgumentTypeError(f"{text!r}: expected a positive integer")
     return value
@@ -725,8 +726,7 @@ def main(argv: list[str] | None = None) -> int:
     rl.require_sb3()
     torch.set_num_threads(1)
     parts = list(dict.fromkeys(args.only or PARTS))
-    custom = {part: _custom_settings(parser, args, part) for part in parts}
-    args.custom_parts = {part for part in parts if custom[part]}
+    args.custom_parts = {part for part in parts if _custom_settings(parser, args, part)}
     if args.quick:
         args.throughput_envs, args.throughput_steps = [1, 2], 2
         args.ppo_envs, args.ppo_rollout, args.ppo_steps, args.ppo_eval_episodes, args.images_steps = 1, 8, 8, 2, 8
@@ -766,12 +766,13 @@ def main(argv: list[str] | None = None) -> int:
     training = [run for part in parts if part in PART_RUNS for run in PART_RUNS[part](args, keypoint_model)]
     jobs = min(args.jobs or len(os.sched_getaffinity(0)), max(len(training), 1))
     sections, summary = {}, {"keypoint_model": keypoint_model, "eval_seeds": [EVAL_SEED], "seed": args.seed}
-    part_wall_s, training_wall_s = {}, 0.0
+    part_wall_s: dict[str, float] = {}
+    training_wall_s = None  # the training stage's, once it has run (not with one job: each part trains its own)
     # The throughput part times the DON: it runs first, alone, before any training starts.
     for part in sorted(parts, key=lambda part: part != "throughput"):
         part_start = time.perf_counter()
         try:
-            if part != "throughput" and jobs > 1 and not training_wall_s:
+            if part in PART_RUNS and jobs > 1 and training_wall_s is None:
                 train_runs(args, training, jobs)
                 training_wall_s = time.perf_counter() - part_start
                 part_start = time.perf_counter()
@@ -783,7 +784,7 @@ def main(argv: list[str] | None = None) -> int:
         summary |= results
     total_wall_s = time.perf_counter() - start
     for part in sections:
-        if part in PART_RUNS and training_wall_s:
+        if part in PART_RUNS and training_wall_s is not None:
             wall = (
                 f"Wall time: the {len(training)} training runs of this command, {jobs} at once (`--jobs`), "
                 f"{training_wall_s / 60:.1f} min; then this part's evaluation {part_wall_s[part] / 60:.1f} min; "
@@ -816,7 +817,7 @@ def main(argv: list[str] | None = None) -> int:
             # A new section goes after the one of the part before it, keeping PARTS' order in RESULTS.md.
             after = f"rl-{PARTS[PARTS.index(part) - 1]}" if PARTS.index(part) else None
             key, title = f"rl-{part}", PART_TITLES[part]
-            if custom[part]:
+            if part in args.custom_parts:
                 # Beside the default run's figures, not over them (e.g. the longer recipes of the docstring).
                 key, after = f"{key}-custom", key
                 title = title.replace(" (bench_rl.py)", ", other settings (bench_rl.py)")

@@ -72,3 +72,11 @@ def test_runs_with_other_settings_record_beside_the_default_ones(tmp_path: Path)
     assert bench_rl._custom_settings(parser, longer, "ppo") == []
     other_part = parser.parse_args(["--keypoint-model", "oracle"])
     assert bench_rl._custom_settings(parser, other_part, "throughput") == ["keypoint_model"]
+
+
+@pytest.mark.parametrize("jobs", ["0", "-1", "x", "1.5"])
+def test_jobs_must_be_a_positive_integer(jobs: str, capsys) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        bench_rl._parser().parse_args(["--jobs", jobs])
+    assert exit_info.value.code == 2
+    assert f"argument --jobs: '{jobs}': expected a positive integer" in capsys.readouterr().err
