@@ -508,12 +508,24 @@ def save_checkpoint(model: Any, curve: LearningCurve, run_dir: str | Path, wall_
     write_text_atomic(run_dir / RUN_FILES["last_progress"], json.dumps(progress) + "\n")
 
 
+def saved_progress(run_dir: str | Path) -> tuple[int, float] | None:
+    """``(env steps, training time in s)`` of a run's last periodic save (:func:`save_checkpoint`);
+    None before its first save or when the file cannot be read."""
+    try:
+        progress = json.loads((Path(run_dir) / RUN_FILES["last_progress"]).read_text())
+        return int(progress["timesteps"]), float(progress["wall_s"])
+    except (OSError, KeyError, TypeError, ValueError):
+        return None
+
+
 def _wall_s_before(run_dir: Path, saved_config: dict[str, Any]) -> float:
     """Training time (s) of a run's earlier sessions: from its last saved progress, else from the
     config of a finished run saved before progress files existed (0 when neither says)."""
-    path = run_dir / RUN_FILES["last_progress"]
+    progress = saved_progress(run_dir)
+    if progress is not None:
+        return progress[1]
     try:
-        return float(json.loads(path.read_text())["wall_s"]) if path.is_file() else float(saved_config["wall_s"])
+        return float(saved_config["wall_s"])
     except (KeyError, TypeError, ValueError):
         return 0.0
 

@@ -29,7 +29,7 @@ CPUs), then each part evaluates. Figures go to ``benchmarks/figures/``, results 
     python benchmarks/bench_rl.py --quick              # smoke run of every part (a few minutes), records nothing
 
 Longer CPU recipe for the SAC part, continuing the default runs in ``runs/rl`` (a finished run is only evaluated
-again): the DON-keypoint run from its 15,000 default steps to 40,000 (~75 min more on 2 cores), the simulated and
+again): the DON-keypoint run from its 20,000 default steps to 40,000 (~60 min more on 2 cores), the simulated and
 true runs from 40,000 to 80,000 (~40 min more), at which the true-keypoint policy also lifts from the task's own
 start, then the DON-keypoint run to 60,000 and 80,000 (~60 min more each), at which the DON-trained policy lifts
 the part from the hand as the others do (RESULTS "rl-sac-custom", beside the default budgets' "rl-sac": true 75%
@@ -70,6 +70,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import FIGURES, REPO_ROOT, freeze_commit_description, record_section  # noqa: E402
 
 from don_gym.agents import AxisGraspAgent, rl  # noqa: E402
+from don_gym.cli import positive_int  # noqa: E402
 from don_gym.errors import DonGymError  # noqa: E402
 from don_gym.io import write_text_atomic  # noqa: E402
 from don_gym.objects import load_object  # noqa: E402
@@ -89,6 +90,8 @@ PARTS = ("throughput", "ppo", "images", "sac")
 RUNS_BAR = "{desc}: {n:.1f}/{total} runs |{bar}| [{elapsed}{postfix}]"
 #: SAC keypoint sources, in the order of the curves.
 SAC_SOURCES = ("simulated", "don", "true")
+#: Training episodes at the end of each SAC learning curve compared with the random policy on the same starts.
+CURVE_END_EPISODES = 100
 #: SAC evaluation starts: the task's own (the hand observing from above), and the part in the closed hand.
 SAC_EVAL_STARTS = {"task start": None, "part in hand": {"in_hand": 1.0}}
 #: SAC training starts (HandStarts shares; the rest start from the task's start).
@@ -175,10 +178,8 @@ def _train_in_child(args: argparse.Namespace, run: TrainingRun, log_path: Path) 
 
 def _run_progress(run_dir: Path) -> int:
     """Env steps of a run's last save (0 before its first)."""
-    try:
-        return int(json.loads((run_dir / rl.RUN_FILES["last_progress"]).read_text())["timesteps"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return 0
+    progress = rl.saved_progress(run_dir)
+    return 0 if progress is None else progress[0]
 
 
 def _last_line(path: Path) -> str:
@@ -563,6 +564,8 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         reference_lines=[(baseline_label, baseline.success_rate, baseline.mean_return)],
     )
 
+    curve_end = _curve_end(runs, baseline)
+
     def transfer_gap(start: str) -> float:
         on_model = results[f"{start}: SAC+HER, simulated keypoints"].success_rate
         return on_model - results[f"{start}: SAC+HER trained on simulated keypoints, run with the DON"].success_rate
@@ -609,8 +612,47 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         "",
         TABLE_HEAD,
         *[_row(name, result) for name, result in results.items()],
+        "",
+        f"**End of the learning curves**: success in each run's last {curve_end['don']['episodes']} training "
+        f"episodes against "
+        f"*{curve_baseline}* ({len(baseline.successes)} episodes), 95 % Wilson intervals; *clearly above random* "
+        "when the run's interval lies wholly above the random policy's.",
+        "",
+        "| keypoints | last training episodes | 95 % interval | random policy | clearly above random |",
+        "|---|---|---|---|---|",
+        *[_curve_end_row(source, end, baseline) for source, end in curve_end.items()],
     ]
-    return "\n".join(body), {f"sac/{name}": _summary(r) for name, r in results.items()}
+    summary = {f"sac/{name}": _summary(r) for name, r in results.items()}
+    return "\n".join(body), summary | {f"sac/curve end: {source}": end for source, end in curve_end.items()}
+
+
+def _curve_end(runs: dict[str, rl.RLTrainResult], baseline: rl.EvaluationResult) -> dict[str, dict[str, Any]]:
+    """Per keypoint source: success in the run's last :data:`CURVE_END_EPISODES` training episodes (fewer
+    when a run has fewer), its Wilson interval, and whether that lies wholly above ``baseline``'s (the
+    random policy on the training starts)."""
+    count = min(CURVE_END_EPISODES, *(len(run.curve.successes) for run in runs.values()))
+    random_hi = wilson_interval(int(sum(baseline.successes)), len(baseline.successes))[1]
+    ends = {}
+    for source, run in runs.items():
+        wins = int(sum(run.curve.successes[-count:])) if count else 0
+        interval = wilson_interval(wins, count)
+        ends[source] = {
+            "successes": wins, "episodes": count, "wilson_95": list(interval),
+            "clearly_above_random": bool(interval[0] > random_hi),
+        }  # fmt: skip
+    return ends
+
+
+def _curve_end_row(source: str, end: dict[str, Any], baseline: rl.EvaluationResult) -> str:
+    wins, n = end["successes"], end["episodes"]
+    lo, hi = end["wilson_95"]
+    random_wins, random_n = int(sum(baseline.successes)), len(baseline.successes)
+    random_lo, random_hi = wilson_interval(random_wins, random_n)
+    return (
+        f"| {source} | {wins}/{n} = {wins / max(n, 1):.0%} | {lo:.0%}-{hi:.0%} | {random_wins}/{random_n} = "
+        f"{random_wins / max(random_n, 1):.0%} ({random_lo:.0%}-{random_hi:.0%}) | "
+        f"{'yes' if end['clearly_above_random'] else 'no'} |"
+    )
 
 
 # ----------------------------------------------------------------------------------------- main
@@ -644,16 +686,6 @@ def keypoint_image_size(keypoint_model: str) -> tuple[int, int]:
     return tuple(read_don_metadata(keypoint_model, expect_part=load_object("toolcap")).image_size)
 
 
-def _positive(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a positive integer")
-    return value
-
-
 def _hand_starts(text: str) -> dict[str, float]:
     """``in_hand=0.5,at_part=0.25`` -> {"in_hand": 0.5, "at_part": 0.25}; ``none`` -> {}."""
     if text.strip().lower() == "none":
@@ -683,7 +715,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--sensor", default="d435")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
-        "--image-size", type=_positive, nargs=2, default=None, metavar=("W", "H"),
+        "--image-size", type=positive_int, nargs=2, default=None, metavar=("W", "H"),
         help="wrist camera size (default: the size the keypoint network was trained at; 160x120 for the oracle)",
     )  # fmt: skip
     parser.add_argument("--out", type=Path, default=None, help=f"run directories (default {DEFAULT_OUT})")
@@ -691,28 +723,30 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--device", default=None, help="where the DON runs (default: cuda if available, else cpu)")
     parser.add_argument("--train-device", default="cpu", help="where the policies train")
     parser.add_argument("--vectorize", choices=("batched", "batched-async"), default="batched")
-    parser.add_argument("--throughput-envs", type=_positive, nargs="+", default=[1, 4, 8])
-    parser.add_argument("--throughput-steps", type=_positive, default=20)
-    parser.add_argument("--ppo-envs", type=_positive, default=2, help="PPO envs, in subprocesses when > 1")
-    parser.add_argument("--ppo-steps", type=_positive, default=1024, help="grasp episodes (one env step each)")
-    parser.add_argument("--ppo-rollout", type=_positive, default=32, help="env steps per PPO update, all envs")
-    parser.add_argument("--ppo-eval-episodes", type=_positive, default=50)
-    parser.add_argument("--images-steps", type=_positive, default=1024)
-    parser.add_argument("--cnn-size", type=_positive, nargs=2, default=[80, 60], metavar=("W", "H"))
+    parser.add_argument("--throughput-envs", type=positive_int, nargs="+", default=[1, 4, 8])
+    parser.add_argument("--throughput-steps", type=positive_int, default=20)
+    parser.add_argument("--ppo-envs", type=positive_int, default=2, help="PPO envs, in subprocesses when > 1")
+    parser.add_argument("--ppo-steps", type=positive_int, default=1024, help="grasp episodes (one env step each)")
+    parser.add_argument("--ppo-rollout", type=positive_int, default=32, help="env steps per PPO update, all envs")
+    parser.add_argument("--ppo-eval-episodes", type=positive_int, default=50)
+    parser.add_argument("--images-steps", type=positive_int, default=1024)
+    parser.add_argument("--cnn-size", type=positive_int, nargs=2, default=[80, 60], metavar=("W", "H"))
     parser.add_argument("--sac-goal", choices=("lift", "place"), default="lift")
-    parser.add_argument("--sac-envs", type=_positive, default=1)
-    parser.add_argument("--sac-steps", type=_positive, default=40_000, help="env steps, simulated and true keypoints")
-    parser.add_argument("--sac-don-steps", type=_positive, default=15_000, help="env steps, DON keypoints")
-    parser.add_argument("--sac-max-steps", type=_positive, default=50)
+    parser.add_argument("--sac-envs", type=positive_int, default=1)
+    parser.add_argument(
+        "--sac-steps", type=positive_int, default=40_000, help="env steps, simulated and true keypoints"
+    )
+    parser.add_argument("--sac-don-steps", type=positive_int, default=20_000, help="env steps, DON keypoints")
+    parser.add_argument("--sac-max-steps", type=positive_int, default=50)
     parser.add_argument("--sac-learning-starts", type=int, default=rl.DEFAULT_ALGO_KWARGS["sac-her"]["learning_starts"])
-    parser.add_argument("--sac-eval-episodes", type=_positive, default=20)
+    parser.add_argument("--sac-eval-episodes", type=positive_int, default=20)
     parser.add_argument(
         "--sac-hand-starts", type=_hand_starts, default=DEFAULT_HAND_STARTS, metavar="START=SHARE,...",
         help="shares of SAC training episodes that start with the hand at or on the part (HandStarts; "
         f"'none' for none; default {','.join(f'{k}={v}' for k, v in DEFAULT_HAND_STARTS.items())})",
     )  # fmt: skip
     parser.add_argument(
-        "--jobs", type=_positive, default=None,
+        "--jobs", type=positive_int, default=None,
         help="training runs at once, each in its own process with one torch thread (default: the number of CPUs, "
         "at most the number of runs); 1 trains them in turn in this process. The runs come out the same either way",
     )  # fmt: skip

@@ -79,4 +79,27 @@ def test_jobs_must_be_a_positive_integer(jobs: str, capsys) -> None:
     with pytest.raises(SystemExit) as exit_info:
         bench_rl._parser().parse_args(["--jobs", jobs])
     assert exit_info.value.code == 2
-    assert f"argument --jobs: '{jobs}': expected a positive integer" in capsys.readouterr().err
+    assert f"argument --jobs: '{jobs}': expected a positive whole number" in capsys.readouterr().err
+
+
+def test_curve_end_compares_each_runs_last_episodes_with_random():
+    def run(successes: list[bool]) -> rl.RLTrainResult:
+        curve = rl.LearningCurve()
+        for i, success in enumerate(successes):
+            curve.add(10 * (i + 1), 0.0, success)
+        return rl.RLTrainResult(model=None, curve=curve, wall_s=0.0, run_wall_s=0.0)
+
+    random_policy = rl.EvaluationResult([0.0] * 100, [i < 3 for i in range(100)], ["fail"] * 100, [5] * 100, 0.0)
+    early_failures = [False] * 400
+    runs = {
+        "learns": run(early_failures + [i % 4 == 0 for i in range(200)]),  # 25 % at the end: above 3/100
+        "barely": run(early_failures + [i % 20 == 0 for i in range(200)]),  # 5 %: within random's interval
+    }
+    ends = bench_rl._curve_end(runs, random_policy)
+    assert ends["learns"]["episodes"] == bench_rl.CURVE_END_EPISODES == 100
+    assert ends["learns"]["successes"] == 25 and ends["learns"]["clearly_above_random"]
+    assert ends["barely"]["successes"] == 5 and not ends["barely"]["clearly_above_random"]
+    assert "| learns | 25/100 = 25% |" in bench_rl._curve_end_row("learns", ends["learns"], random_policy)
+    # A run shorter than the window is compared over all its episodes, every run over the same count.
+    short = bench_rl._curve_end({"short": run([True] * 30), "learns": runs["learns"]}, random_policy)
+    assert short["short"]["episodes"] == short["learns"]["episodes"] == 30

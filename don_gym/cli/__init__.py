@@ -33,6 +33,17 @@ def parse_size(text: str, option: str = "size") -> tuple[int, int]:
     return width, height
 
 
+def positive_int(text: str) -> int:
+    """An argparse ``type`` for counts: a whole number >= 1; otherwise one line naming the value."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a positive whole number")
+    return value
+
+
 class _Parser(argparse.ArgumentParser):
     """Usage errors (a bad choice, a missing value) as one line like every other error, with a pointer to --help."""
 

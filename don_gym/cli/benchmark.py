@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import TYPE_CHECKING
 
+from don_gym.cli import positive_int
+
 if TYPE_CHECKING:
     from don_gym.objects import ObjectModel
 
@@ -33,16 +35,6 @@ sensor (d435@0.5 = half the D435's noise, holes and calibration error). The last
 one (outcome table and bar chart). --out writes grasp_episodes.json (every episode), grasp.md (tables),
 grasp_outcomes.png, with several sensors grasp_sweep.png and with --random-poses grasp_outcomes_random.png.
 """
-
-
-def _positive_count(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a positive whole number of poses")
-    return value
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -74,7 +66,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     grasp.add_argument("--repeats", type=int, default=None, help="episodes per method and pose (default: 3)")
     grasp.add_argument(
         "--random-poses",
-        type=_positive_count,
+        type=positive_int,
         default=0,
         metavar="N",
         help="also N seeded random poses, one episode each, in tables of their own (default: none)",
