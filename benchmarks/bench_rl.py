@@ -109,14 +109,18 @@ TABLE_HEAD = (
 )
 
 
+def _rate_cells(wins: int, n: int) -> tuple[str, str]:
+    """(``wins/n = rate``, ``low-high``, its 95 % Wilson interval): the two table cells of a success rate."""
+    lo, hi = wilson_interval(wins, n)
+    return f"{wins}/{n} = {wins / max(n, 1):.0%}", f"{lo:.0%}-{hi:.0%}"
+
+
 def _row(name: str, result: rl.EvaluationResult) -> str:
     n = len(result.successes)
-    wins = int(sum(result.successes))
-    lo, hi = wilson_interval(wins, n)
     counts = result.outcome_counts()
     per_episode = result.wall_s / max(n, 1)
     return (
-        f"| {name} | {wins}/{n} = {result.success_rate:.0%} | {lo:.0%}-{hi:.0%} | {counts['grasp_only']} | "
+        f"| {name} | {' | '.join(_rate_cells(int(sum(result.successes)), n))} | {counts['grasp_only']} | "
         f"{counts['fail']} | {result.mean_return:.2f} | {per_episode:.2f} |"
     )
 
@@ -614,9 +618,8 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         *[_row(name, result) for name, result in results.items()],
         "",
         f"**End of the learning curves**: success in each run's last {curve_end['don']['episodes']} training "
-        f"episodes against "
-        f"*{curve_baseline}* ({len(baseline.successes)} episodes), 95 % Wilson intervals; *clearly above random* "
-        "when the run's interval lies wholly above the random policy's.",
+        f"episodes against *{curve_baseline}* ({len(baseline.successes)} episodes), 95 % Wilson intervals; "
+        "*clearly above random* when the run's interval lies wholly above the random policy's.",
         "",
         "| keypoints | last training episodes | 95 % interval | random policy | clearly above random |",
         "|---|---|---|---|---|",
@@ -631,7 +634,7 @@ def _curve_end(runs: dict[str, rl.RLTrainResult], baseline: rl.EvaluationResult)
     when a run has fewer), its Wilson interval, and whether that lies wholly above ``baseline``'s (the
     random policy on the training starts)."""
     count = min(CURVE_END_EPISODES, *(len(run.curve.successes) for run in runs.values()))
-    random_hi = wilson_interval(int(sum(baseline.successes)), len(baseline.successes))[1]
+    random_hi = _summary(baseline)["wilson_95"][1]
     ends = {}
     for source, run in runs.items():
         wins = int(sum(run.curve.successes[-count:])) if count else 0
@@ -644,13 +647,10 @@ def _curve_end(runs: dict[str, rl.RLTrainResult], baseline: rl.EvaluationResult)
 
 
 def _curve_end_row(source: str, end: dict[str, Any], baseline: rl.EvaluationResult) -> str:
-    wins, n = end["successes"], end["episodes"]
-    lo, hi = end["wilson_95"]
-    random_wins, random_n = int(sum(baseline.successes)), len(baseline.successes)
-    random_lo, random_hi = wilson_interval(random_wins, random_n)
+    rate, interval = _rate_cells(end["successes"], end["episodes"])
+    random_rate, random_interval = _rate_cells(int(sum(baseline.successes)), len(baseline.successes))
     return (
-        f"| {source} | {wins}/{n} = {wins / max(n, 1):.0%} | {lo:.0%}-{hi:.0%} | {random_wins}/{random_n} = "
-        f"{random_wins / max(random_n, 1):.0%} ({random_lo:.0%}-{random_hi:.0%}) | "
+        f"| {source} | {rate} | {interval} | {random_rate} ({random_interval}) | "
         f"{'yes' if end['clearly_above_random'] else 'no'} |"
     )
 
