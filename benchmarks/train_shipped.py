@@ -1,8 +1,8 @@
 """Reproduce the networks shipped in don_gym/shipped from scratch, and record the run.
 
 For each object (toolcap, shaft): build a dataset (640x480, d435 sensor, seed 0; 16 scenes of the toolcap,
-32 of the shaft), train one network per method (resnet-lite, object-centred crops: 128x128 for the toolcap,
-256x192 for the shaft; fixed seed), copy its final weights to
+32 of the shaft), train one network per method (``resnet-lite``, ``resnet-lite-fine`` for supervised-mask;
+object-centred crops: 128x128 for the toolcap, 256x192 for the shaft; fixed seed), copy its final weights to
 ``don_gym/shipped/<object>/<method>.safetensors`` and record its training time, images/s and final loss in
 benchmarks/RESULTS.md, one section per object (``shipped-<object>``). Each row names the scenes, steps and
 commit its network was made with; a run of some methods (``--methods``) keeps the rows of the object's other
@@ -49,7 +49,13 @@ CROPS = {"toolcap": (128, 128), "shaft": (256, 192)}
 # The shaft's supervised networks trained on 16 scenes misread one end in a few unseen views (p99 of the
 # 3D error ~100 mm on held-out scenes); on 32 scenes p99 is ~20 mm. The toolcap's gained nothing from 32.
 SCENES = {"toolcap": 16, "shaft": 32}
-TABLE_COLUMNS = ("object", "method", "scenes", "steps", "minutes", "images/s", "final loss", "MB", "commit")
+# The supervised-mask networks' background channel turns the stride-8 blend of part and background a few pixels
+# inside the silhouette into matches off the part (p99 of the shaft's 3D error 246 mm with resnet-lite); the
+# decoder of resnet-lite-fine resolves the silhouette at stride 2.
+ARCH = {"supervised-edge": "resnet-lite", "supervised-mask": "resnet-lite-fine", "self-supervised": "resnet-lite"}
+TABLE_COLUMNS = (
+    "object", "method", "arch", "scenes", "steps", "minutes", "images/s", "final loss", "MB", "commit"
+)  # fmt: skip
 
 
 def restamp_shipped(object_name: str, method: str, data: Path) -> None:
@@ -93,6 +99,7 @@ def main() -> None:
         "--crop", type=parse_size, default=None, help="training crop WIDTHxHEIGHT (default: per object, see CROPS)"
     )
     parser.add_argument("--steps", type=int, default=6000)
+    parser.add_argument("--arch", default=None, help="network arch of every method (default: per method, see ARCH)")
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--threads", type=int, default=1, help="torch threads per training (1: see TrainConfig)")
     # Batches built in worker processes do not change the curve (don_gym.train), only the time: the
@@ -114,6 +121,7 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="don_gym_shipped_")) if args.quick else Path(args.work)
     if args.quick:
         args.scenes, args.frames, args.steps = 2, 6, 20
+    archs = {method: args.arch or ARCH.get(method, "resnet-lite") for method in args.methods}
     rows: dict[str, dict[str, str]] = {name: {} for name in args.objects}
     shipped = []
     crops = {name: args.crop or CROPS[name] for name in args.objects}
@@ -140,6 +148,7 @@ def main() -> None:
                     data=str(data),
                     out=str(run),
                     steps=args.steps,
+                    arch=archs[method],
                     batch_size=args.batch_size,
                     seed=0,
                     crop_size=crops[object_name],
@@ -152,6 +161,7 @@ def main() -> None:
             rows[object_name][method] = {
                 "object": object_name,
                 "method": method,
+                "arch": archs[method],
                 "scenes": str(scenes[object_name]),
                 "steps": str(args.steps),
                 "minutes": "n/a" if result.seconds is None else f"{result.seconds / 60:.1f}",
@@ -178,7 +188,7 @@ def main() -> None:
             key=lambda row: METHODS.index(row["method"]) if row["method"] in METHODS else len(METHODS),
         )
         body = f"""Datasets: the table's scenes x {args.frames} frames, {width}x{height}, sensor `d435`, TinyRenderer,
-seed 0. Training: `resnet-lite`, batch {args.batch_size} (images, or image pairs for self-supervised),
+seed 0. Training: the row's network arch, batch {args.batch_size} (images, or image pairs for self-supervised),
 {crop_width}x{crop_height} object-centred crops, Adam lr 1e-3 x0.9 every 250 steps, seed 0, {args.threads} torch
 thread(s), {args.workers} loader worker(s). Final loss = mean of the last 5% of steps (the two methods' losses
 are on different scales and not comparable with each other). Minutes and images/s add up every session of a
@@ -199,8 +209,8 @@ still the shipped one.
 
 def recorded_rows(section: str, path: Path = RESULTS_PATH) -> dict[str, dict[str, str]]:
     """The rows of the table in RESULTS.md's section ``section``, by method, as column -> cell. A row without a
-    ``scenes`` cell takes it from its shipped network's metadata, one without a ``commit`` cell the section's
-    commit line ("not recorded" when it has none)."""
+    ``scenes`` or ``arch`` cell takes it from its shipped network's metadata, one without a ``commit`` cell the
+    section's commit line ("not recorded" when it has none)."""
     text = read_section(section, path)
     if text is None:
         return {}
@@ -214,10 +224,13 @@ def recorded_rows(section: str, path: Path = RESULTS_PATH) -> dict[str, dict[str
         row = dict(zip(header, (cell.strip() for cell in line.strip("|").split("|")), strict=False))
         if "method" not in row or "object" not in row:
             continue
+        network = SHIPPED_DIR / row["object"] / f"{row['method']}.safetensors"
+        metadata = read_checkpoint_metadata(network) if network.is_file() else None
         if "scenes" not in row:
-            network = SHIPPED_DIR / row["object"] / f"{row['method']}.safetensors"
-            scenes = read_checkpoint_metadata(network).extra.get("dataset_scenes") if network.is_file() else None
+            scenes = None if metadata is None else metadata.extra.get("dataset_scenes")
             row["scenes"] = "n/a" if scenes is None else str(scenes)
+        if "arch" not in row:
+            row["arch"] = "n/a" if metadata is None else metadata.arch
         row.setdefault("commit", commit_line.group(1).strip() if commit_line else "not recorded")
         rows[row["method"]] = row
     return rows

@@ -2,7 +2,8 @@
 
 As in the original DON (docs/background.md, section "Self-supervised DON training"): a dilated ResNet
 encoder with output stride 8, a 1x1 convolution to ``D`` channels and bilinear upsampling back to the
-input size. :class:`DenseObjectNet` is the network, :data:`ARCHS` its encoder sizes.
+input size; archs with a decoder (``"resnet-lite-fine"``) first refine the stride-8 features with the
+encoder's stride-4 and stride-2 features. :class:`DenseObjectNet` is the network, :data:`ARCHS` its sizes.
 """
 
 from __future__ import annotations
@@ -23,8 +24,8 @@ from don_gym.errors import CheckpointError, DonGymError
 IMAGENET_MEAN: tuple[float, float, float] = (0.485, 0.456, 0.406)
 IMAGENET_STD: tuple[float, float, float] = (0.229, 0.224, 0.225)
 
-#: Spatial downsampling between the input and the descriptor head.
-OUTPUT_STRIDE = 8
+#: Spatial downsampling between the input and the encoder's last stage.
+ENCODER_STRIDE = 8
 
 
 @dataclass(frozen=True)
@@ -33,6 +34,9 @@ class ArchSpec:
 
     ``stem`` is ``"imagenet"`` (7x7 stride-2 conv + 3x3 stride-2 max-pool, torchvision
     names ``conv1``/``bn1``) or ``"fast"`` (two 3x3 stride-2 convs of ``stem_widths``).
+    ``decoder_widths`` (at most 2) are the channels of the decoder stages at stride 4 and 2: each
+    upsamples the previous features x2, joins the encoder's features of that stride and applies a 3x3
+    convolution; ``()`` puts the descriptor head on the stride-8 features.
     """
 
     blocks: tuple[int, int, int, int]
@@ -41,6 +45,12 @@ class ArchSpec:
     stem_widths: tuple[int, ...]
     torchvision_layout: bool
     description: str = field(default="", compare=False)
+    decoder_widths: tuple[int, ...] = ()
+
+    @property
+    def output_stride(self) -> int:
+        """Spatial downsampling between the input and the descriptor head (8, 4 or 2)."""
+        return ENCODER_STRIDE >> len(self.decoder_widths)
 
 
 #: Encoder sizes. ``"resnet34"`` is the paper's network (BasicBlock [3, 4, 6, 3], widths 64-512, 7x7 stem
@@ -51,9 +61,21 @@ class ArchSpec:
 #: and their cost grows with width squared, so narrow stages keep CPU inference cheap (benchmarks/RESULTS.md,
 #: "train-speed") while the dilation keeps the receptive field at 431 px, more than a whole 320x240 frame.
 #: Its 0.55 M parameters make a 2.2 MB float32 checkpoint; it has no ImageNet weights and trains from scratch.
+#: ``"resnet-lite-fine"`` adds a decoder to output stride 2 (32 and 16 channels): at stride 8 a pixel a few
+#: pixels inside the part's silhouette gets a blend of the part's and the background's descriptors, which a
+#: supervised-mask network's background channel turns into matches off the part (docs/reliability.md).
 ARCHS: dict[str, ArchSpec] = {
     "resnet-lite": ArchSpec(
         (2, 2, 2, 2), (24, 48, 64, 96), "fast", (16, 24), False, "CPU-sized ResNet, trains from scratch"
+    ),
+    "resnet-lite-fine": ArchSpec(
+        (2, 2, 2, 2),
+        (24, 48, 64, 96),
+        "fast",
+        (16, 24),
+        False,
+        "resnet-lite with a decoder to output stride 2 (sharper silhouettes)",
+        decoder_widths=(32, 16),
     ),
     "resnet18": ArchSpec((2, 2, 2, 2), (64, 128, 256, 512), "imagenet", (64,), True, "ResNet-18, dilated"),
     "resnet34": ArchSpec((3, 4, 6, 3), (64, 128, 256, 512), "imagenet", (64,), True, "ResNet-34, dilated (paper)"),
@@ -164,13 +186,39 @@ class DilatedResNet(nn.Module):
                 nn.init.ones_(module.weight)
                 nn.init.zeros_(module.bias)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def skip_channels(self) -> tuple[int, int]:
+        """Channels of :meth:`features`' stride-4 and stride-2 maps."""
+        return self.spec.widths[0], self.spec.stem_widths[0]
+
+    def features(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The normalised input's features at stride 8 (the last stage), 4 (stage 1) and 2 (the stem's first
+        convolution)."""
         if self.spec.stem == "imagenet":
-            x = self.maxpool(F.relu(self.bn1(self.conv1(x)), inplace=True))
+            stride_2 = F.relu(self.bn1(self.conv1(x)), inplace=True)
+            x = self.maxpool(stride_2)
         else:
-            x = F.relu(self.stem_bn1(self.stem_conv1(x)), inplace=True)
-            x = F.relu(self.stem_bn2(self.stem_conv2(x)), inplace=True)
-        return self.layer4(self.layer3(self.layer2(self.layer1(x))))
+            stride_2 = F.relu(self.stem_bn1(self.stem_conv1(x)), inplace=True)
+            x = F.relu(self.stem_bn2(self.stem_conv2(stride_2)), inplace=True)
+        stride_4 = self.layer1(x)
+        return self.layer4(self.layer3(self.layer2(stride_4))), stride_4, stride_2
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.features(x)[0]
+
+
+class DecoderStage(nn.Module):
+    """Upsample x2 (to the skip's size), join the encoder's skip features, 3x3 convolution + BN + ReLU."""
+
+    def __init__(self, in_channels: int, skip_channels: int, out_channels: int) -> None:
+        super().__init__()
+        self.conv = nn.Conv2d(in_channels + skip_channels, out_channels, 3, 1, 1, bias=False)
+        self.bn = nn.BatchNorm2d(out_channels)
+        nn.init.kaiming_normal_(self.conv.weight, mode="fan_out", nonlinearity="relu")
+
+    def forward(self, x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
+        up = F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+        joined = torch.cat([up, skip], dim=1).contiguous(memory_format=torch.channels_last)
+        return F.relu(self.bn(self.conv(joined)), inplace=True)
 
 
 @dataclass(frozen=True)
@@ -268,19 +316,31 @@ class DenseObjectNet(nn.Module):
         self.register_buffer("mean", torch.tensor(self.normalization_mean).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(self.normalization_std).view(1, 3, 1, 1), persistent=False)
         self.encoder = DilatedResNet(spec)
-        self.head = nn.Conv2d(self.encoder.out_channels, self.descriptor_dim, 1)
+        self.output_stride = spec.output_stride
+        self.decoder = nn.ModuleList()
+        channels = self.encoder.out_channels
+        for width, skip in zip(spec.decoder_widths, self.encoder.skip_channels(), strict=False):
+            self.decoder.append(DecoderStage(channels, skip, width))
+            channels = width
+        self.head = nn.Conv2d(channels, self.descriptor_dim, 1)
         if pretrained_path is not None:
             self.load_pretrained_encoder(pretrained_path)
         self.to(memory_format=torch.channels_last)
 
     def forward_low_res(self, rgb: torch.Tensor) -> torch.Tensor:
-        """Descriptors at output stride 8: ``(B, D, ceil(H/8), ceil(W/8))``, before upsampling."""
+        """Descriptors at the arch's output stride ``s`` (:attr:`output_stride`): ``(B, D, ceil(H/s), ceil(W/s))``,
+        before upsampling."""
         if rgb.ndim != 4 or rgb.shape[1] != 3:
             raise DonGymError(f"DenseObjectNet input must be (B, 3, H, W) RGB in [0, 1], got shape {tuple(rgb.shape)}")
         if not rgb.is_floating_point():
             raise DonGymError(f"DenseObjectNet input must be a float tensor in [0, 1], got dtype {rgb.dtype}")
         x = ((rgb - self.mean) / self.std).contiguous(memory_format=torch.channels_last)
-        return self.head(self.encoder(x))
+        if not self.decoder:
+            return self.head(self.encoder(x))
+        features, *skips = self.encoder.features(x)
+        for stage, skip in zip(self.decoder, skips, strict=False):
+            features = stage(features, skip)
+        return self.head(features)
 
     def forward(self, rgb: torch.Tensor) -> torch.Tensor:
         """``(B, 3, H, W)`` float RGB in [0, 1] -> ``(B, D, H, W)`` descriptors (contiguous NCHW)."""

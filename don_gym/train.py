@@ -79,7 +79,7 @@ DATASET_IDENTITY_KEY = "dataset_identity"
 @dataclass(frozen=True)
 class TrainConfig:
     """One training run. ``lr`` None picks 1e-4 (paper) for ImageNet-layout ResNets and
-    1e-3 for the from-scratch ``resnet-lite``. ``crop_size`` (width, height) trains on
+    1e-3 for the from-scratch ``resnet-lite`` archs. ``crop_size`` (width, height) trains on
     object-centred random crops (None: whole frames); the network still runs on whole frames.
     ``threads`` sets torch's CPU threads (None: torch's default); on a machine whose cores
     are shared with other work, 1 thread avoids OpenMP stalls that can slow a step 10x.
@@ -118,7 +118,7 @@ class TrainConfig:
     def learning_rate(self) -> float:
         if self.lr is not None:
             return self.lr
-        return 1e-3 if self.arch == "resnet-lite" else 1e-4
+        return 1e-4 if ARCHS[self.arch].torchvision_layout else 1e-3
 
 
 @dataclass(frozen=True)

@@ -15,8 +15,10 @@ from don_gym.model import ARCHS, DEFAULT_ARCH, DenseObjectNet
 
 
 @pytest.mark.parametrize("arch", sorted(ARCHS))
-def test_output_matches_input_size_and_stride_8_inside(arch: str) -> None:
+def test_output_matches_input_size_and_the_archs_stride_inside(arch: str) -> None:
     model = DenseObjectNet(arch, descriptor_dim=5).eval()
+    stride = ARCHS[arch].output_stride
+    assert model.output_stride == stride == (2 if ARCHS[arch].decoder_widths else 8)
     with torch.no_grad():
         for height, width in ((38, 50), (48, 64), (33, 17)):
             rgb = torch.rand(2, 3, height, width)
@@ -24,7 +26,7 @@ def test_output_matches_input_size_and_stride_8_inside(arch: str) -> None:
             assert out.shape == (2, 5, height, width)
             assert out.is_contiguous() and torch.isfinite(out).all()
             low = model.forward_low_res(rgb)
-            assert low.shape == (2, 5, math.ceil(height / 8), math.ceil(width / 8))
+            assert low.shape == (2, 5, math.ceil(height / stride), math.ceil(width / stride))
 
 
 def test_default_arch_is_small_and_resnet34_is_the_papers() -> None:

@@ -26,7 +26,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--data", required=True, help="dataset directory")
     parser.add_argument("--out", required=True, help="run directory")
     parser.add_argument("--steps", type=int, default=2000, help="optimisation steps")
-    parser.add_argument("--arch", default="resnet-lite", help="network: resnet-lite (CPU default), resnet18, resnet34")
+    parser.add_argument(
+        "--arch",
+        default="resnet-lite",
+        help="network: resnet-lite (CPU default), resnet-lite-fine (decoder to stride 2: sharper silhouettes), "
+        "resnet18, resnet34",
+    )
     parser.add_argument(
         "--batch-size",
         type=int,
@@ -34,7 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="images (supervised) or image pairs per step, over all processes under torchrun",
     )
     parser.add_argument(
-        "--lr", type=float, default=None, help="Adam learning rate (default: 1e-3 resnet-lite, 1e-4 else)"
+        "--lr", type=float, default=None, help="Adam learning rate (default: 1e-3 resnet-lite*, 1e-4 else)"
     )
     parser.add_argument("--seed", type=int, default=0, help="seed for weights, data order and augmentation")
     parser.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints")
