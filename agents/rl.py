@@ -7,10 +7,10 @@ through its axis-end keypoints, never through its true pose.
   the keypoints of each wrist-camera image; with ``goal=`` goal-conditioned, trained with HER.
 - PPO on ``control="grasp"`` from descriptor images through a CNN (:func:`make_image_env`).
 
-Keypoints (``keypoints=``): ``"don"`` a DON or the oracle on rendered images
-(:class:`~don_gym.wrappers.KeypointObservation`); ``"simulated"`` a model of the DON, no rendering
-(:class:`~don_gym.wrappers.SimulatedKeypoints` with the network's measured noise); ``"true"`` exact
-keypoints always in view. :func:`train` runs SB3 with a tqdm bar and, given ``run_dir``, writes the
+Keypoints (``keypoints=``, :data:`don_gym.wrappers.goals.KEYPOINT_SOURCES`): ``"don"`` a DON or the oracle
+on rendered images (:class:`~don_gym.wrappers.KeypointObservation`); ``"simulated"`` a model of the DON, no
+rendering (:class:`~don_gym.wrappers.SimulatedKeypoints` with the network's measured noise); ``"true"``
+exact keypoints always in view. :func:`train` runs SB3 with a tqdm bar and, given ``run_dir``, writes the
 learning curve (CSV, PNG), configuration and seeds (JSON) and periodic saves it can resume from;
 :func:`evaluate` measures a policy on seeded episodes. ``n_envs > 1`` with ``vectorize="batched"``
 steps the sub-envs together and runs the DON once per step on all their images
@@ -41,17 +41,13 @@ from gymnasium import spaces
 from don_gym.errors import DonGymError
 from don_gym.io import atomic_path, write_text_atomic
 from don_gym.sim.task import OUTCOMES
-from don_gym.wrappers import KeypointObservation
-from don_gym.wrappers.goals import GOALS, HandStarts, KeypointGoal
+from don_gym.wrappers.goals import GOALS, KeypointGoal, make_goal_env, make_keypoint_env
 from don_gym.wrappers.images import DescriptorImage
 from don_gym.wrappers.rl import POSITION_UNIT_M, WORKSPACE_CENTRE_M, KeypointFeatures, KeypointGraspAction
-from don_gym.wrappers.simulated_keypoints import SimulatedKeypoints
 
 #: The pip command that installs stable-baselines3 for these baselines.
 RL_INSTALL_HINT = 'pip install "don-gym[rl]"'
 ALGORITHMS = ("ppo", "sac", "ppo-images")
-#: Where the keypoints come from (see the module docstring).
-KEYPOINT_SOURCES = ("don", "simulated", "true")
 #: How :func:`train` steps several envs.
 VECTORIZE = ("dummy", "subproc", "batched", "batched-async")
 #: Files a run directory holds (see :func:`train`).
@@ -79,39 +75,6 @@ def require_sb3() -> Any:
 
 
 # ------------------------------------------------------------------------------- the envs
-def _base_env(
-    object: str | Path,  # noqa: A002 - the env's own kwarg name
-    images: bool,
-    image_size: tuple[int, int] | None,
-    hand_starts: dict[str, float] | None = None,
-    **env_kwargs: Any,
-) -> gym.Env:
-    env = gym.make("DONPick-v0", object=object, image_size=image_size if images else None, **env_kwargs)
-    # Innermost, so that a vector env's automatic resets (which pass no options) draw a start too.
-    return HandStarts(env, hand_starts) if hand_starts else env
-
-
-def _with_keypoints(
-    env: gym.Env,
-    keypoints: str,
-    keypoint_model: str | Path,
-    noise: Any,
-    keypoint_kwargs: dict[str, Any] | None,
-) -> gym.Env:
-    if keypoints == "don":
-        return KeypointObservation(env, model=keypoint_model, keep_images=False, **(keypoint_kwargs or {}))
-    if keypoints == "true":
-        return SimulatedKeypoints(env, noise=None, field_of_view=False, keep_images=False)
-    if noise is None and str(keypoint_model) != "oracle":
-        noise = keypoint_model  # the network's default noise model
-    return SimulatedKeypoints(env, noise=noise, keep_images=False)
-
-
-def _check_keypoints(keypoints: str) -> None:
-    if keypoints not in KEYPOINT_SOURCES:
-        raise DonGymError(f"keypoints={keypoints!r} is unknown; expected one of {list(KEYPOINT_SOURCES)}")
-
-
 def make_ppo_env(
     object: str | Path = "toolcap",  # noqa: A002 - the env's own kwarg name
     keypoint_model: str | Path = "oracle",
@@ -133,9 +96,10 @@ def make_ppo_env(
     or a checkpoint path; ``keypoints``/``noise``: see the module docstring. ``reward_type="dense"``
     gives failed grasps a graded penalty (the success rate is measured either way by ``info["is_success"]``).
     """
-    _check_keypoints(keypoints)
-    env = _base_env(object, keypoints == "don", image_size, control="grasp", sensor=sensor, reward_type=reward_type)
-    env = _with_keypoints(env, keypoints, keypoint_model, noise, keypoint_kwargs)
+    env = make_keypoint_env(
+        object, keypoints, keypoint_model, noise, image_size, keypoint_kwargs=keypoint_kwargs,
+        control="grasp", sensor=sensor, reward_type=reward_type,
+    )  # fmt: skip
     env = KeypointGraspAction(env, frame=action_frame)
     return KeypointFeatures(env, relative_to="centroid", robot_state=False)
 
@@ -163,16 +127,21 @@ def make_sac_env(
     TCP) plus the robot state as one flat vector; the keypoints move with the camera and vanish when
     the part leaves the view, their confidences let the policy tell. ``goal`` ("place" or the "lift"
     sub-task): the goal-conditioned dict of :class:`~don_gym.wrappers.KeypointGoal` for HER, with its
-    sparse goal reward instead of ``reward_type``'s. ``hand_starts``: shares of episodes that start with
-    the hand at or on the part (:class:`~don_gym.wrappers.HandStarts`; for training)."""
-    _check_keypoints(keypoints)
+    sparse goal reward instead of ``reward_type``'s: the env of
+    :func:`~don_gym.wrappers.goals.make_goal_env`, which the registered ``DONToolcapLift-v0`` makes.
+    ``hand_starts``: shares of episodes that start with the hand at or on the part
+    (:class:`~don_gym.wrappers.HandStarts`; for training)."""
     if goal is not None and goal not in GOALS:
         raise DonGymError(f"goal={goal!r} is unknown; expected None or one of {list(GOALS)}")
-    env = _base_env(
-        object, keypoints == "don", image_size, hand_starts, control="ee", sensor=sensor, reward_type=reward_type,
-        max_steps=max_steps,
+    if goal is not None:
+        return make_goal_env(
+            object, goal, keypoints, keypoint_model, noise, image_size, max_steps, hand_starts, keypoint_kwargs,
+            sensor=sensor, reward_type=reward_type,
+        )  # fmt: skip
+    env = make_keypoint_env(
+        object, keypoints, keypoint_model, noise, image_size, hand_starts, keypoint_kwargs,
+        control="ee", sensor=sensor, reward_type=reward_type, max_steps=max_steps,
     )  # fmt: skip
-    env = _with_keypoints(env, keypoints, keypoint_model, noise, keypoint_kwargs)
     return _sac_head(env, goal)
 
 
@@ -190,7 +159,9 @@ def make_image_env(
     spans the env's action box in [-1, 1]^4 (x, y, z, yaw): the policy must find the part in the image."""
     from don_gym.wrappers import DescriptorObservation
 
-    env = _base_env(object, True, image_size, control="grasp", sensor=sensor, reward_type=reward_type)
+    env = make_keypoint_env(
+        object, None, image_size=image_size, control="grasp", sensor=sensor, reward_type=reward_type
+    )
     env = DescriptorImage(DescriptorObservation(env, model=keypoint_model), size=cnn_size, keep=())
     ones = np.ones(env.action_space.shape, dtype=np.float32)
     return gym.wrappers.RescaleAction(env, -ones, ones)
@@ -371,11 +342,11 @@ def make_batched_sac_vec_env(
     if goal is not None and goal not in GOALS:
         raise DonGymError(f"goal={goal!r} is unknown; expected None or one of {list(GOALS)}")
     base = functools.partial(
-        _base_env,
+        make_keypoint_env,
         kwargs.get("object", "toolcap"),
-        True,
-        kwargs.get("image_size", (160, 120)),
-        kwargs.get("hand_starts"),
+        None,
+        image_size=kwargs.get("image_size", (160, 120)),
+        hand_starts=kwargs.get("hand_starts"),
         control="ee",
         sensor=kwargs.get("sensor", "d435"),
         reward_type=kwargs.get("reward_type", "dense"),

@@ -187,6 +187,40 @@ def test_goal_env_passes_sb3_check_env_and_rewards_agree_with_success(toolcap) -
     grasp.close()
 
 
+def test_the_lift_sub_task_is_registered_and_is_the_sac_baselines_env() -> None:
+    from stable_baselines3.common.env_checker import check_env
+
+    env = gym.make("DONToolcapLift-v0", max_steps=10, hand_starts={"in_hand": 1.0})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_env(env, warn=True, skip_render_check=True)
+    baseline = rl.make_sac_env(goal="lift", keypoints="true", max_steps=10, hand_starts={"in_hand": 1.0})
+    obs, info = env.reset(seed=5)
+    expected, _ = baseline.reset(seed=5)
+    for key in ("observation", "achieved_goal", "desired_goal"):
+        np.testing.assert_allclose(obs[key], expected[key], atol=1e-6)
+    start = obs["achieved_goal"].copy()
+    np.testing.assert_allclose(obs["desired_goal"] - start, np.tile([0.0, 0.0, 0.06], 2), atol=1e-6)
+    assert info["hand_start"] == "in_hand"
+    # Up with the gripper closed: the part comes along until the goal is reached, which ends the episode.
+    for _ in range(10):
+        obs, reward, terminated, truncated, info = env.step(np.array([0.0, 0.0, 1.0, 0.0, -1.0], dtype=np.float32))
+        assert reward == float(env.get_wrapper_attr("compute_reward")(obs["achieved_goal"], obs["desired_goal"], info))
+        if terminated or truncated:
+            break
+    assert info["is_success"] and terminated and reward == 0.0
+    assert obs["achieved_goal"][2] > start[2] + 0.05
+    env.close()
+    baseline.close()
+    shaft = gym.make("DONShaftLift-v0", keypoints="simulated", keypoint_model="shaft/supervised-edge")
+    assert shaft.get_wrapper_attr("object_model").name == "shaft"
+    shaft.close()
+    with pytest.raises(DonGymError, match="keypoints='camera'"):
+        gym.make("DONLift-v0", object="toolcap", keypoints="camera")
+    with pytest.raises(DonGymError, match="goal='stack'"):
+        gym.make("DONLift-v0", goal="stack")
+
+
 def test_hand_starts_put_the_hand_at_or_on_the_part_and_the_part_lifts_from_the_hand(toolcap) -> None:
     env = gym.make("DONToolcapPick-v0", control="ee", image_size=None, max_steps=20)
     u = env.unwrapped

@@ -5,11 +5,14 @@
 ``desired_goal`` dict that stable-baselines3's ``HerReplayBuffer`` expects, goals being the part's two
 axis-end keypoints (6 numbers, world metres), and gives the vectorised ``compute_reward`` HER relabels with.
 :class:`HandStarts` starts a share of (training) episodes with the hand at or on the part, HER's device for
-tasks a random policy never completes.
+tasks a random policy never completes. :func:`make_keypoint_env` joins the env, a start and a keypoint
+source; :func:`make_goal_env` adds the goal, and is what the registered lift sub-task ``DONToolcapLift-v0``
+(``DONShaftLift-v0``, ``DONLift-v0`` with ``object=``) makes.
 """
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -20,14 +23,19 @@ from don_gym.descriptor_sources import DEFAULT_AXIS_FRACTIONS, axis_end_targets,
 from don_gym.errors import DonGymError
 from don_gym.sim.env import HAND_STARTS
 from don_gym.sim.task import seated_pose, within_placement_tolerance
-from don_gym.wrappers.keypoints import POINT_BOUND_M
+from don_gym.wrappers.keypoints import POINT_BOUND_M, KeypointObservation
 from don_gym.wrappers.rl import KeypointFeatures
-from don_gym.wrappers.simulated_keypoints import axis_points_world
+from don_gym.wrappers.simulated_keypoints import SimulatedKeypoints, axis_points_world
 
 #: Goals :class:`KeypointGoal` offers: the task's placement, or lifting the part where it lies.
 GOALS = ("place", "lift")
 #: The lift sub-task's goal: the part's keypoints this far (m) above where they were at reset.
 LIFT_GOAL_HEIGHT_M = 0.06
+#: Where :func:`make_keypoint_env`'s keypoints come from: ``"don"`` a DON or the oracle on rendered images
+#: (:class:`~don_gym.wrappers.KeypointObservation`); ``"simulated"`` a model of the DON, no rendering
+#: (:class:`~don_gym.wrappers.SimulatedKeypoints` with the network's measured noise); ``"true"`` exact
+#: keypoints always in view.
+KEYPOINT_SOURCES = ("don", "simulated", "true")
 
 
 def goal_reached(achieved_goal: np.ndarray, desired_goal: np.ndarray) -> np.ndarray:
@@ -182,3 +190,66 @@ class HandStarts(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if "hand_start" not in options:
             options["hand_start"] = self._names[int(self._rng.choice(len(self._names), p=self._probabilities))]
         return self.env.reset(seed=seed, options=options)
+
+
+def make_keypoint_env(
+    object: str | Path = "toolcap",  # noqa: A002 - the env's own kwarg name
+    keypoints: str | None = "don",
+    keypoint_model: str | Path = "oracle",
+    noise: Any = None,
+    image_size: tuple[int, int] | None = (160, 120),
+    hand_starts: dict[str, float] | None = None,
+    keypoint_kwargs: dict[str, Any] | None = None,
+    **env_kwargs: Any,
+) -> gym.Env:
+    """``DONPick-v0`` of ``object`` (``env_kwargs``: its arguments, e.g. ``control``, ``sensor``) with the part's
+    keypoints from ``keypoints`` (one of :data:`KEYPOINT_SOURCES`; None: none yet, the wrist images only, as
+    the sub-envs of a :class:`~don_gym.wrappers.VectorKeypointObservation` or a descriptor-image env need).
+
+    ``keypoint_model``: "oracle", a shipped DON name such as "toolcap/supervised-edge", or a checkpoint path;
+    for ``"simulated"`` its measured noise model unless ``noise`` names another (None with the oracle: exact
+    keypoints, hidden outside the camera's view). ``image_size``: the wrist camera's, used only by ``"don"``
+    and None (the others render nothing). ``hand_starts``: :class:`HandStarts` shares, innermost, so that a vector
+    env's automatic resets draw a start too. ``keypoint_kwargs``: more arguments of
+    :class:`~don_gym.wrappers.KeypointObservation`.
+    """
+    if keypoints is not None and keypoints not in KEYPOINT_SOURCES:
+        raise DonGymError(f"keypoints={keypoints!r} is unknown; expected one of {list(KEYPOINT_SOURCES)}")
+    images = keypoints in ("don", None)
+    env = gym.make("DONPick-v0", object=object, image_size=image_size if images else None, **env_kwargs)
+    if hand_starts:
+        env = HandStarts(env, hand_starts)
+    if keypoints is None:
+        return env
+    if keypoints == "don":
+        return KeypointObservation(env, model=keypoint_model, keep_images=False, **(keypoint_kwargs or {}))
+    if keypoints == "true":
+        return SimulatedKeypoints(env, noise=None, field_of_view=False, keep_images=False)
+    if noise is None and str(keypoint_model) != "oracle":
+        noise = keypoint_model  # the network's default noise model
+    return SimulatedKeypoints(env, noise=noise, keep_images=False)
+
+
+def make_goal_env(
+    object: str | Path = "toolcap",  # noqa: A002 - the env's own kwarg name
+    goal: str = "lift",
+    keypoints: str = "true",
+    keypoint_model: str | Path = "oracle",
+    noise: Any = None,
+    image_size: tuple[int, int] | None = (160, 120),
+    max_steps: int = 100,
+    hand_starts: dict[str, float] | None = None,
+    keypoint_kwargs: dict[str, Any] | None = None,
+    **env_kwargs: Any,
+) -> gym.Env:
+    """The goal-conditioned pick task for HER: ``control="ee"`` with keypoints (:func:`make_keypoint_env`)
+    under :class:`KeypointGoal` (``goal``: "lift", the sub-task, or "place"); episodes of at most
+    ``max_steps`` steps. The registered ``DONToolcapLift-v0`` is this with ``goal="lift"``, e.g.
+    ``gym.make("DONToolcapLift-v0", keypoints="don", keypoint_model="toolcap/supervised-edge")``."""
+    if goal not in GOALS:
+        raise DonGymError(f"goal={goal!r} is unknown; expected one of {list(GOALS)}")
+    env = make_keypoint_env(
+        object, keypoints, keypoint_model, noise, image_size, hand_starts, keypoint_kwargs,
+        control="ee", max_steps=max_steps, **env_kwargs,
+    )  # fmt: skip
+    return KeypointGoal(env, goal=goal)
