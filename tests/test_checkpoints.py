@@ -51,6 +51,27 @@ def saved(tmp_path_factory) -> tuple[Path, DenseObjectNet]:
     return path, model
 
 
+def test_an_arch_with_a_decoder_round_trips_and_its_name_must_fit_the_weights(tmp_path: Path) -> None:
+    torch.manual_seed(0)
+    fine = DenseObjectNet("resnet-lite-fine", descriptor_dim=3).eval()
+    path = tmp_path / "fine.safetensors"
+    save_checkpoint(path, fine, METADATA)
+    loaded, metadata = load_checkpoint(path)
+    assert metadata.arch == "resnet-lite-fine" and loaded.output_stride == 2
+    rgb = torch.rand(1, 3, 48, 64)
+    with torch.no_grad():
+        assert torch.equal(loaded(rgb), fine(rgb))
+    # Weights of the plain arch under the decoder arch's name: refused, naming the arch.
+    plain = _trained_model()
+    save_checkpoint(tmp_path / "plain.safetensors", plain, METADATA)
+    stored = read_checkpoint_metadata(tmp_path / "plain.safetensors").to_dict()
+    tensors = {k: v.contiguous() for k, v in plain.state_dict().items()}
+    renamed = tmp_path / "renamed.safetensors"
+    save_file(tensors, str(renamed), metadata={"don_gym": json.dumps({**stored, "arch": "resnet-lite-fine"})})
+    with pytest.raises(CheckpointError, match="do not fit arch 'resnet-lite-fine'"):
+        load_checkpoint(renamed)
+
+
 def test_round_trip_gives_identical_outputs_and_metadata(saved) -> None:
     path, model = saved
     loaded, metadata = load_checkpoint(

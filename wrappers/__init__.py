@@ -9,6 +9,8 @@
 - :class:`SimulatedKeypoints` (a model of the DON, no rendering), :class:`KeypointGoal` (goals for HER),
   :class:`DescriptorImage` (uint8 descriptor images for CNN policies), :class:`VectorKeypointObservation`
   (one DON pass per vector-env step).
+- :func:`make_keypoint_env` (an env with a keypoint source) and :func:`make_goal_env` (the goal-conditioned
+  task for HER, which the registered ``DONToolcapLift-v0`` makes).
 
 The descriptor sources and reference descriptors live in :mod:`don_gym.descriptor_sources`; their
 names are re-exported here. Example::
@@ -32,7 +34,7 @@ from don_gym.descriptor_sources import (
     reference_descriptors_for,
 )
 from don_gym.wrappers.descriptors import DESCRIPTOR_BOUND, DescriptorObservation
-from don_gym.wrappers.goals import HandStarts, KeypointGoal
+from don_gym.wrappers.goals import HandStarts, KeypointGoal, make_goal_env, make_keypoint_env
 from don_gym.wrappers.images import DescriptorImage
 from don_gym.wrappers.keypoints import KeypointObservation
 from don_gym.wrappers.rl import KeypointFeatures, KeypointGraspAction
@@ -61,5 +63,7 @@ __all__ = [
     "descriptor_field_for",
     "env_object_model",
     "load_descriptor_source",
+    "make_goal_env",
+    "make_keypoint_env",
     "reference_descriptors_for",
 ]
