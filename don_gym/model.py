@@ -63,7 +63,7 @@ class ArchSpec:
 #: Its 0.55 M parameters make a 2.2 MB float32 checkpoint; it has no ImageNet weights and trains from scratch.
 #: ``"resnet-lite-fine"`` adds a decoder to output stride 2 (32 and 16 channels): at stride 8 a pixel a few
 #: pixels inside the part's silhouette gets a blend of the part's and the background's descriptors, which a
-#: supervised-mask network's background channel turns into matches off the part (docs/reliability.md).
+#: supervised-mask network's background channel turns into matches off the part (docs/reproduction.md, (b)).
 ARCHS: dict[str, ArchSpec] = {
     "resnet-lite": ArchSpec(
         (2, 2, 2, 2), (24, 48, 64, 96), "fast", (16, 24), False, "CPU-sized ResNet, trains from scratch"
