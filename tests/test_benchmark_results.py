@@ -111,8 +111,8 @@ def test_a_new_section_goes_after_the_named_one(tmp_path: Path) -> None:
 
 
 def test_shipped_table_keeps_the_rows_of_networks_not_retrained(tmp_path: Path) -> None:
-    """train_shipped.py's rows of an earlier run, in the older layout (no scenes, no commit cell) or the
-    current one, are read back with their own scenes and commit."""
+    """train_shipped.py's rows of an earlier run, in an older layout (no arch, scenes or commit cell) or the
+    current one, are read back with their own arch, scenes and commit."""
     import train_shipped
 
     results = tmp_path / "RESULTS.md"
@@ -126,14 +126,17 @@ def test_shipped_table_keeps_the_rows_of_networks_not_retrained(tmp_path: Path) 
     assert rows == {
         "not-shipped": {
             "object": "shaft", "method": "not-shipped", "steps": "6000", "minutes": "80.8", "images/s": "9.9",
-            "final loss": "0.067", "MB": "2.5", "scenes": "n/a", "commit": commit,
+            "final loss": "0.067", "MB": "2.5", "scenes": "n/a", "arch": "n/a", "commit": commit,
         }
     }  # fmt: skip
     current = "| " + " | ".join(train_shipped.TABLE_COLUMNS) + " |\n|" + "---|" * len(train_shipped.TABLE_COLUMNS)
-    current += "\n| shaft | supervised-edge | 32 | 6000 | 40.0 | 20.0 | 0.05 | 2.6 | abc1234 |\n"
+    current += "\n| shaft | supervised-edge | resnet-lite | 32 | 6000 | 40.0 | 20.0 | 0.05 | 2.6 | abc1234 |\n"
     _results.record_section("shipped-shaft", "S", current, path=results)
     row = train_shipped.recorded_rows("shipped-shaft", path=results)["supervised-edge"]
-    assert (row["scenes"], row["commit"], row["minutes"]) == ("32", "abc1234", "40.0")
+    assert (row["arch"], row["scenes"], row["commit"], row["minutes"]) == ("resnet-lite", "32", "abc1234", "40.0")
+    # A row of the older layout for a shipped network takes its arch from the network's metadata.
+    _results.record_section("shipped-shaft", "S", old.replace("not-shipped", "supervised-mask"), path=results)
+    assert train_shipped.recorded_rows("shipped-shaft", path=results)["supervised-mask"]["arch"] == "resnet-lite-fine"
     assert train_shipped.recorded_rows("shipped-toolcap", path=results) == {}
 
 
