@@ -39,6 +39,7 @@ from don_gym.cli import parse_size  # noqa: E402
 from don_gym.dataset import FIELD_FILE  # noqa: E402
 from don_gym.descriptors import DescriptorField  # noqa: E402
 from don_gym.errors import DonGymError  # noqa: E402
+from don_gym.model import ARCHS, DEFAULT_ARCH  # noqa: E402
 from don_gym.objects import load_object  # noqa: E402
 from don_gym.train import TrainConfig, train  # noqa: E402
 from don_gym.zoo import SHIPPED_DIR  # noqa: E402
@@ -99,7 +100,9 @@ def main() -> None:
         "--crop", type=parse_size, default=None, help="training crop WIDTHxHEIGHT (default: per object, see CROPS)"
     )
     parser.add_argument("--steps", type=int, default=6000)
-    parser.add_argument("--arch", default=None, help="network arch of every method (default: per method, see ARCH)")
+    parser.add_argument(
+        "--arch", choices=sorted(ARCHS), default=None, help="network arch of every method (default: per method, ARCH)"
+    )
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--threads", type=int, default=1, help="torch threads per training (1: see TrainConfig)")
     # Batches built in worker processes do not change the curve (don_gym.train), only the time: the
@@ -121,7 +124,7 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="don_gym_shipped_")) if args.quick else Path(args.work)
     if args.quick:
         args.scenes, args.frames, args.steps = 2, 6, 20
-    archs = {method: args.arch or ARCH.get(method, "resnet-lite") for method in args.methods}
+    archs = {method: args.arch or ARCH.get(method, DEFAULT_ARCH) for method in args.methods}
     rows: dict[str, dict[str, str]] = {name: {} for name in args.objects}
     shipped = []
     crops = {name: args.crop or CROPS[name] for name in args.objects}

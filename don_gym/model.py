@@ -335,8 +335,6 @@ class DenseObjectNet(nn.Module):
         if not rgb.is_floating_point():
             raise DonGymError(f"DenseObjectNet input must be a float tensor in [0, 1], got dtype {rgb.dtype}")
         x = ((rgb - self.mean) / self.std).contiguous(memory_format=torch.channels_last)
-        if not self.decoder:
-            return self.head(self.encoder(x))
         features, *skips = self.encoder.features(x)
         for stage, skip in zip(self.decoder, skips, strict=False):
             features = stage(features, skip)
