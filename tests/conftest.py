@@ -23,3 +23,16 @@ def _one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture
+def ctrl_c_reaches_children():
+    """Commands started during the test take Ctrl-C as from a terminal, even when the test run itself
+    ignores SIGINT (launched with ``nohup ... &``, or as a background job of a script): an ignored signal
+    stays ignored across exec, and Python then installs no KeyboardInterrupt handler. A Python handler
+    here is reset to the default in every child at exec."""
+    import signal
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)

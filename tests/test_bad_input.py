@@ -551,7 +551,9 @@ def test_error_line_names_the_file_of_an_os_error() -> None:
     assert error_line(DonGymError("first\nsecond")) == "first second"
 
 
-def test_ctrl_c_during_a_grasp_benchmark_on_workers_prints_no_traceback(tmp_path: Path) -> None:
+def test_ctrl_c_during_a_grasp_benchmark_on_workers_prints_no_traceback(
+    tmp_path: Path, ctrl_c_reaches_children
+) -> None:
     """The terminal sends SIGINT to the command and its worker processes alike."""
     argv = [sys.executable, "-m", "don_gym.cli", "benchmark", "grasp", "--methods", "oracle", "--sensors", "ideal"]
     argv += ["--poses", "0", "1", "2", "3", "4", "5", "6", "7", "--repeats", "2", "--image-size", "64x48"]

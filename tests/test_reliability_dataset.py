@@ -455,7 +455,7 @@ def test_a_part_in_pieces_is_refused_with_advice_for_build_dataset(tmp_path: Pat
     assert "--components" not in line and "components=" not in line, line  # options build-dataset does not have
 
 
-def test_ctrl_c_during_a_build_on_workers_prints_no_traceback(tmp_path: Path) -> None:
+def test_ctrl_c_during_a_build_on_workers_prints_no_traceback(tmp_path: Path, ctrl_c_reaches_children) -> None:
     """The terminal sends SIGINT to the command and its worker processes alike: one line, status 130, no
     worker traceback, nothing half-written, and the same build then completes the dataset."""
     out = tmp_path / "ds"
