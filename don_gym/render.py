@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import trimesh
 
-from don_gym.descriptors import interpolate_field
+from don_gym.descriptors import background_descriptor, interpolate_field
 from don_gym.errors import DonGymError, MeshError
 from don_gym.geometry import CameraIntrinsics, invert_transform, pixel_rays, project_points, transform_points
 
@@ -518,6 +518,33 @@ def mask_channel(object_mask: np.ndarray) -> np.ndarray:
     return channel
 
 
+def mask_background(vertex_descriptors: np.ndarray, mask_dim: int = -1) -> np.ndarray:
+    """Background descriptor of the ``"mask"`` target variant: (D,) float32.
+
+    The paper's rule for the background (the point of the unit cube furthest from every object
+    descriptor) applied to the descriptors this variant trains towards. Its mask channel is 0 off
+    the object and close to 0 just inside the outline, so the background can only be told from
+    the outline by the other dimensions: they take the point of the unit cube furthest from the
+    object's descriptors in those dimensions (:func:`~don_gym.descriptors.background_descriptor`),
+    and ``mask_dim`` is 0. The full field's background projected onto those dimensions can lie
+    close to, or on, an object descriptor (the shaft's 0.34 away, the toolcap's on one).
+
+    Args:
+        vertex_descriptors: (N, D) optimal descriptors in [0, 1] of the mesh vertices, D >= 2.
+        mask_dim: the dimension the mask channel replaces (negative counts from the end).
+    """
+    descriptors = np.asarray(vertex_descriptors, dtype=np.float64)
+    if descriptors.ndim != 2 or descriptors.shape[1] < 2 or len(descriptors) == 0:
+        raise DonGymError(f"vertex_descriptors: expected (N, D) with N >= 1 and D >= 2, got shape {descriptors.shape}")
+    dims = descriptors.shape[1]
+    if not -dims <= mask_dim < dims:
+        raise DonGymError(f"mask_dim={mask_dim}: expected a dimension index in [{-dims}, {dims - 1}]")
+    kept = np.delete(np.arange(dims), mask_dim)
+    background = np.zeros(dims, dtype=np.float32)
+    background[kept] = background_descriptor(descriptors[:, kept])
+    return background
+
+
 def make_target(
     variant: str,
     descriptor_image: np.ndarray,
@@ -536,11 +563,11 @@ def make_target(
         descriptor_image: (H, W, D) geometric target, e.g. ``RenderedTarget.descriptor_image``
             or one read back from a dataset.
         object_mask: (H, W) bool object pixels of that target.
-        background: (D,) background descriptor used for rendering.
+        background: (D,) the target's background descriptor, written off the object by ``"edge"``
+            and ``"mask"``: for ``"edge"`` the one used for rendering, for ``"mask"``
+            :func:`mask_background` (its ``mask_dim`` entry is ignored: the mask channel is 0 there).
         edge_width_px: blend width for ``"edge"``; None: :func:`default_edge_width_px`.
-        mask_dim: dimension replaced for ``"mask"`` (negative counts from the end). Off the object
-            that dimension becomes 0, so the effective background descriptor of a "mask" target is
-            ``background`` with ``background[mask_dim] = 0``.
+        mask_dim: dimension replaced for ``"mask"`` (negative counts from the end).
 
     Returns:
         (H, W, D) float32, a new array.
@@ -555,6 +582,8 @@ def make_target(
     dims = image.shape[2]
     if not -dims <= mask_dim < dims:
         raise DonGymError(f"mask_dim={mask_dim}: expected a dimension index in [{-dims}, {dims - 1}]")
+    mask = _check_mask(object_mask, image.shape[:2], "object_mask")
     target = image.copy()
-    target[..., mask_dim] = mask_channel(object_mask)
+    target[~mask] = _check_background(background, dims)
+    target[..., mask_dim] = mask_channel(mask)
     return target

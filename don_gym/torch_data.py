@@ -20,7 +20,7 @@ from don_gym.augment import AugmentConfig, augment
 from don_gym.correspondences import Correspondences, camera_poses_differ, sample_correspondences
 from don_gym.dataset import DEPTH_SOURCES, DONDataset
 from don_gym.errors import DatasetError, DonGymError
-from don_gym.render import TARGET_VARIANTS, default_edge_width_px, make_target
+from don_gym.render import TARGET_VARIANTS, default_edge_width_px, make_target, mask_background
 
 
 def crop_window(
@@ -94,7 +94,13 @@ class SupervisedFrames(Dataset):
             raise DatasetError(f"target variant {variant!r} is unknown; expected one of {TARGET_VARIANTS}")
         self.data = DONDataset(root)
         self.variant = variant
-        self.background = np.asarray(self.data.descriptor_field().background, dtype=np.float32)
+        field = self.data.descriptor_field()
+        #: (D,) descriptor of the targets off the object (the variant's, :func:`make_target`).
+        self.background = (
+            mask_background(field.vertex_descriptors)
+            if variant == "mask"
+            else np.asarray(field.background, dtype=np.float32)
+        )
         width = self.data.scenes[0].intrinsics.width
         self.edge_width_px = default_edge_width_px(width) if edge_width_px is None else float(edge_width_px)
         self.index = self.data.frames

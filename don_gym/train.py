@@ -314,8 +314,14 @@ def _writing(path: Path) -> Iterator[None]:
 
 
 def checkpoint_metadata(
-    config: TrainConfig, dataset_info: dict[str, Any], image_size: tuple[int, int], step: int
+    config: TrainConfig,
+    dataset_info: dict[str, Any],
+    image_size: tuple[int, int],
+    step: int,
+    background_descriptor: np.ndarray | None = None,
 ) -> CheckpointMetadata:
+    """What a checkpoint of this run records; ``background_descriptor`` is its targets' background (supervised
+    methods: ``SupervisedFrames.background``)."""
     supervised = is_supervised(config.method)
     return CheckpointMetadata(
         method=config.method,
@@ -323,7 +329,7 @@ def checkpoint_metadata(
         object_mesh_hash=dataset_info["mesh_hash"],
         image_size=tuple(image_size),
         descriptor_field_hash=dataset_info["descriptor_field_hash"] if supervised else "",
-        background_descriptor=tuple(float(v) for v in dataset_info["background_descriptor"]) if supervised else (),
+        background_descriptor=tuple(float(v) for v in background_descriptor) if supervised else (),
         renderer=dataset_info["renderer"],
         sensor_preset=dataset_info["sensor"],
         training_steps=step,
@@ -456,6 +462,7 @@ def _train(
     identity = dataset_identity(source.data)
     supervised = is_supervised(config.method)
     part_identity = dataset_part_identity(source.data, supervised) if launch.is_main else None
+    target_background = source.background if isinstance(source, SupervisedFrames) else None
 
     torch.manual_seed(config.seed)
     model = DenseObjectNet(config.arch, int(info["descriptor_dim"])).to(device)
@@ -548,7 +555,12 @@ def _train(
         if not launch.is_main:
             return
         with _writing(path):
-            save_checkpoint(path, model, checkpoint_metadata(config, info, image_size, step), identity=part_identity)
+            save_checkpoint(
+                path,
+                model,
+                checkpoint_metadata(config, info, image_size, step, target_background),
+                identity=part_identity,
+            )
         save_state(step)
         with _writing(out / LOSS_PNG):
             plot_loss_curve(rows, out / LOSS_PNG, title)

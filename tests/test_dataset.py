@@ -197,14 +197,20 @@ def test_export_pdc_layout(small_dataset: Path, tmp_path: Path) -> None:
 
 
 def test_torch_datasets(small_dataset: Path) -> None:
+    import torch
+
     from don_gym.torch_data import CorrespondencePairs, SupervisedFrames, collate_pairs
 
     for variant in ("geometric", "edge", "mask"):
         item = SupervisedFrames(str(small_dataset), variant=variant)[1]
         assert item["rgb"].shape == (3, 72, 96) and item["target"].shape == (3, 72, 96)
         assert item["object_mask"].dtype.is_floating_point is False
-    mask_item = SupervisedFrames(str(small_dataset), variant="mask")[1]
-    assert float(mask_item["target"][2][~mask_item["object_mask"]].abs().max()) == 0.0
+    mask_frames = SupervisedFrames(str(small_dataset), variant="mask")
+    mask_item = mask_frames[1]
+    off_object = mask_item["target"][:, ~mask_item["object_mask"]]
+    assert float(off_object[2].abs().max()) == 0.0
+    assert torch.equal(off_object[:2].unique(dim=1).flatten(), torch.from_numpy(mask_frames.background[:2]))
+    assert not np.allclose(mask_frames.background, SupervisedFrames(str(small_dataset), variant="edge").background)
     pairs = CorrespondencePairs(str(small_dataset), depth_source="ideal", seed=1, length=4)
     first, again = pairs[2], pairs[2]
     assert np.array_equal(first["correspondences"].matches_a, again["correspondences"].matches_a)

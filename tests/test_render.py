@@ -9,8 +9,10 @@ import pytest
 import trimesh
 from pybullet_utils.bullet_client import BulletClient
 from scipy.ndimage import distance_transform_edt
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from don_gym.descriptor_sources import descriptor_field_for
 from don_gym.errors import DonGymError
 from don_gym.geometry import (
     CameraIntrinsics,
@@ -29,6 +31,7 @@ from don_gym.render import (
     edge_blend,
     embree_available,
     make_target,
+    mask_background,
     mask_channel,
     render_descriptor_image,
 )
@@ -272,11 +275,43 @@ def test_make_target_variants(toolcap):
     np.testing.assert_array_equal(masked[..., 2], mask_channel(rendered.object_mask))
     masked_first = make_target("mask", rendered.descriptor_image, rendered.object_mask, BACKGROUND, mask_dim=0)
     np.testing.assert_array_equal(masked_first[..., 1:], geometric[..., 1:])
+    other_background = np.array([0.25, 0.75, 0.5], dtype=np.float32)
+    masked = make_target("mask", rendered.descriptor_image, rendered.object_mask, other_background)
+    off = ~rendered.object_mask
+    assert off.any() and rendered.object_mask.any()
+    np.testing.assert_array_equal(masked[off], np.tile([0.25, 0.75, 0.0], (int(off.sum()), 1)))
+    np.testing.assert_array_equal(masked[~off][:, :2], geometric[~off][:, :2])
     with pytest.raises(DonGymError, match="geometric"):
         make_target("blur", rendered.descriptor_image, rendered.object_mask, BACKGROUND)
     with pytest.raises(DonGymError, match="mask_dim"):
         make_target("mask", rendered.descriptor_image, rendered.object_mask, BACKGROUND, mask_dim=3)
     assert TARGET_VARIANTS == ("geometric", "edge", "mask")
+
+
+def test_mask_background_is_furthest_from_the_dimensions_the_mask_variant_keeps():
+    # Descriptors on the diagonal of the first two dimensions: the corners off it are furthest.
+    t = np.linspace(0.0, 1.0, 101)
+    descriptors = np.stack([t, t, 1.0 - t], axis=1)
+    background = mask_background(descriptors)
+    assert background.dtype == np.float32 and background[2] == 0.0
+    assert cKDTree(descriptors[:, :2]).query(background[:2])[0] == pytest.approx(np.sqrt(0.5), abs=1e-3)
+    first = mask_background(descriptors, mask_dim=0)
+    assert first[0] == 0.0 and cKDTree(descriptors[:, 1:]).query(first[1:])[0] == pytest.approx(np.sqrt(0.5), abs=1e-3)
+    with pytest.raises(DonGymError, match="mask_dim"):
+        mask_background(descriptors, mask_dim=3)
+    with pytest.raises(DonGymError, match="vertex_descriptors"):
+        mask_background(descriptors[:, :1])
+
+
+@pytest.mark.parametrize("name", ["toolcap", "shaft"])
+def test_mask_background_keeps_the_outline_apart_from_the_background(name):
+    """The full field's background projected onto the two geometric dimensions lies near an object
+    descriptor, where the mask channel is ~0 at the outline; the mask variant's own background does not."""
+    field = descriptor_field_for(load_object(name))
+    geometric = cKDTree(field.vertex_descriptors[:, :2])
+    projected = geometric.query(field.background[:2])[0]
+    own = geometric.query(mask_background(field.vertex_descriptors)[:2])[0]
+    assert projected < 0.4 and own > 0.45 and own > projected + 0.1
 
 
 @pytest.mark.skipif(not embree_available(), reason="embreex does not import on this machine")
