@@ -582,8 +582,11 @@ def make_target(
     dims = image.shape[2]
     if not -dims <= mask_dim < dims:
         raise DonGymError(f"mask_dim={mask_dim}: expected a dimension index in [{-dims}, {dims - 1}]")
-    mask = _check_mask(object_mask, image.shape[:2], "object_mask")
-    target = image.copy()
-    target[~mask] = _check_background(background, dims)
+    height, width = image.shape[:2]
+    mask = _check_mask(object_mask, (height, width), "object_mask")
+    target = _filled_image(height, width, _check_background(background, dims))
+    box = _mask_box(mask)
+    if box is not None:
+        target[box][mask[box]] = image[box][mask[box]]
     target[..., mask_dim] = mask_channel(mask)
     return target
