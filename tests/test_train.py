@@ -55,6 +55,10 @@ def test_thirty_steps_lower_the_loss(method: str, tiny_dataset: str, tmp_path: P
     model, metadata = load_checkpoint(result.model_path, expect_object="toolcap", expect_method=method)
     assert metadata.training_steps == 30 and metadata.image_size == (96, 72)
     assert metadata.extra["crop_size"] == [64, 48]  # the recipe is in the checkpoint
+    if method != "self-supervised":  # the background its targets had, the mask variant's own
+        variant = "mask" if method == "supervised-mask" else "edge"
+        targets_background = SupervisedFrames(tiny_dataset, variant=variant).background
+        np.testing.assert_allclose(metadata.background_descriptor, targets_background, atol=1e-6)
     assert model.descriptor_image(np.zeros((72, 96, 3), np.uint8)).shape == (72, 96, 3)
     with pytest.raises(CheckpointError, match="object_name"):
         load_checkpoint(result.model_path, expect_object="shaft")
