@@ -48,8 +48,7 @@ OBJECTS = ("toolcap", "shaft")
 METHODS = ("supervised-edge", "supervised-mask", "self-supervised")
 CROPS = {"toolcap": (128, 128), "shaft": (256, 192)}
 # The shaft's supervised networks trained on 16 scenes misread one end in a few unseen views (p99 of the
-# 3D error ~100 mm on held-out scenes); on 32 scenes p99 is ~20 mm. The toolcap's gained nothing from 32, nor
-# the shaft's supervised-mask network from 64 (docs/reproduction.md, claim (b)).
+# 3D error ~100 mm on held-out scenes); on 32 scenes p99 is ~20 mm. The toolcap's gained nothing from 32.
 SCENES = {"toolcap": 16, "shaft": 32}
 # The supervised-mask networks' background channel turns the stride-8 blend of part and background a few pixels
 # inside the silhouette into matches off the part (p99 of the shaft's 3D error 246 mm with resnet-lite); the
