@@ -414,6 +414,11 @@ def default_edge_width_px(image_width: int) -> float:
     return EDGE_WIDTH_PX_AT_640 * image_width / 640.0
 
 
+def _check_mask_dim(mask_dim: int, dims: int) -> None:
+    if not -dims <= mask_dim < dims:
+        raise DonGymError(f"mask_dim={mask_dim}: expected a dimension index in [{-dims}, {dims - 1}]")
+
+
 def _filled_image(height: int, width: int, descriptor: np.ndarray) -> np.ndarray:
     """(height, width, D) float32 image of one descriptor."""
     # Copying one tiled row into every row is ~20x faster than broadcasting a (D,) vector.
@@ -537,8 +542,7 @@ def mask_background(vertex_descriptors: np.ndarray, mask_dim: int = -1) -> np.nd
     if descriptors.ndim != 2 or descriptors.shape[1] < 2 or len(descriptors) == 0:
         raise DonGymError(f"vertex_descriptors: expected (N, D) with N >= 1 and D >= 2, got shape {descriptors.shape}")
     dims = descriptors.shape[1]
-    if not -dims <= mask_dim < dims:
-        raise DonGymError(f"mask_dim={mask_dim}: expected a dimension index in [{-dims}, {dims - 1}]")
+    _check_mask_dim(mask_dim, dims)
     kept = np.delete(np.arange(dims), mask_dim)
     background = np.zeros(dims, dtype=np.float32)
     background[kept] = background_descriptor(descriptors[:, kept])
@@ -580,8 +584,7 @@ def make_target(
     if variant == "edge":
         return edge_blend(image, object_mask, background, edge_width_px)
     dims = image.shape[2]
-    if not -dims <= mask_dim < dims:
-        raise DonGymError(f"mask_dim={mask_dim}: expected a dimension index in [{-dims}, {dims - 1}]")
+    _check_mask_dim(mask_dim, dims)
     height, width = image.shape[:2]
     mask = _check_mask(object_mask, (height, width), "object_mask")
     target = _filled_image(height, width, _check_background(background, dims))

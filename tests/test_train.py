@@ -19,6 +19,7 @@ from don_gym.build import DatasetConfig, build_dataset
 from don_gym.checkpoints import load_checkpoint
 from don_gym.cli import main as cli_main
 from don_gym.errors import CheckpointError, DonGymError
+from don_gym.methods import SUPERVISED_TARGET_VARIANT
 from don_gym.model import DenseObjectNet
 from don_gym.torch_data import CorrespondencePairs, StepBatches, SupervisedFrames, step_loader
 from don_gym.train import TRAIN_STATE, TrainConfig, train
@@ -55,9 +56,8 @@ def test_thirty_steps_lower_the_loss(method: str, tiny_dataset: str, tmp_path: P
     model, metadata = load_checkpoint(result.model_path, expect_object="toolcap", expect_method=method)
     assert metadata.training_steps == 30 and metadata.image_size == (96, 72)
     assert metadata.extra["crop_size"] == [64, 48]  # the recipe is in the checkpoint
-    if method != "self-supervised":  # the background its targets had, the mask variant's own
-        variant = "mask" if method == "supervised-mask" else "edge"
-        targets_background = SupervisedFrames(tiny_dataset, variant=variant).background
+    if method in SUPERVISED_TARGET_VARIANT:  # the background its targets had, the mask variant's own
+        targets_background = SupervisedFrames(tiny_dataset, variant=SUPERVISED_TARGET_VARIANT[method]).background
         np.testing.assert_allclose(metadata.background_descriptor, targets_background, atol=1e-6)
     assert model.descriptor_image(np.zeros((72, 96, 3), np.uint8)).shape == (72, 96, 3)
     with pytest.raises(CheckpointError, match="object_name"):
