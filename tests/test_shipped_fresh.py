@@ -48,6 +48,21 @@ def test_fingerprints_hold_on_this_machine() -> None:
     assert not problems, "fingerprints outside their tolerance:\n" + "\n".join(problems) + f"\n{RERUN}"
 
 
+def test_shipped_noise_models_were_measured_on_the_shipped_networks() -> None:
+    from don_gym.wrappers.simulated_keypoints import KeypointNoiseModel, shipped_noise_path
+
+    stale = []
+    for name in shipped_names():
+        path = shipped_noise_path(name)
+        assert path.is_file(), f"{name}: no default keypoint noise model {path.name}"
+        if KeypointNoiseModel.load(path).source_weights_sha256 != check_shipped.weights_sha256(name):
+            stale.append(name)
+    assert not stale, (
+        f"keypoint noise models not measured on the shipped networks' current weights: {', '.join(stale)}. "
+        f"Run `python benchmarks/make_keypoint_noise.py {' '.join(stale)}`."
+    )
+
+
 def test_source_hash_ignores_comments_docstrings_and_layout() -> None:
     base = 'def f(x):\n    """Doc."""\n    return x + 1  # one\n'
     same = '"""Module doc."""\n\n\ndef f(x):\n    # why\n    return (x +\n            1)\n'

@@ -110,6 +110,9 @@ class KeypointNoiseModel:
         fractions: axial fractions of the two keypoints (:func:`~don_gym.descriptor_sources.axis_end_targets`).
         source: what was measured (a network name), for reports.
         frames: frames measured.
+        source_weights_sha256: the measured network's ``weights_sha256`` (its checkpoint metadata), so that
+            a model left behind when the network is retrained is told apart; empty when the source was not a
+            checkpoint (the oracle, a network object) or for files written before it was recorded.
     """
 
     keypoint: np.ndarray
@@ -121,6 +124,7 @@ class KeypointNoiseModel:
     fractions: tuple[float, float] = DEFAULT_AXIS_FRACTIONS
     source: str = ""
     frames: int = 0
+    source_weights_sha256: str = ""
 
     def __post_init__(self) -> None:
         keypoint = np.asarray(self.keypoint)
@@ -149,6 +153,7 @@ class KeypointNoiseModel:
             "flip_rate": float(self.flip_rate),
             "source": self.source,
             "frames": int(self.frames),
+            "source_weights_sha256": self.source_weights_sha256,
         }
         with atomic_path(path, suffix=".npz") as tmp:
             np.savez_compressed(
@@ -185,6 +190,7 @@ class KeypointNoiseModel:
                 fractions=tuple(float(f) for f in meta["fractions"]),
                 source=str(meta.get("source", "")),
                 frames=int(meta.get("frames", 0)),
+                source_weights_sha256=str(meta.get("source_weights_sha256", "")),
             )
         except DonGymError as exc:
             raise DonGymError(f"keypoint noise model {str(path)!r}: {exc}") from exc
@@ -435,6 +441,7 @@ def measure_keypoint_noise(
     if targets is None:
         raise DonGymError("measure_keypoint_noise measures the default axis-end keypoints")
     name = model if isinstance(model, (str, Path)) else wrapped.method
+    metadata = getattr(wrapped.source, "metadata", None)  # a checkpoint's, for NetworkDescriptors
     rng = np.random.default_rng(seed)
     keypoint, errors, confidences = [], [], []
     frames = flips = both_found = 0
@@ -483,4 +490,5 @@ def measure_keypoint_noise(
         fractions=targets.fractions,
         source=str(name),
         frames=frames,
+        source_weights_sha256=metadata.weights_sha256 if metadata is not None else "",
     )
