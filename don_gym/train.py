@@ -525,7 +525,8 @@ def _train(
     images_per_step = config.batch_size * (1 if supervised else 2)
     title = f"{config.method} on {info['object']} ({config.arch})"
 
-    def save_state(step: int) -> None:
+    def save_state(step: int, seconds: float | None = None) -> None:
+        """The resumable state; ``seconds`` this session's training time (default: until now)."""
         state_path = out / TRAIN_STATE
         with _writing(state_path):
             with atomic_path(state_path) as tmp:
@@ -540,7 +541,7 @@ def _train(
                             {}
                             if earlier_seconds is None or earlier_images is None
                             else {
-                                "seconds": earlier_seconds + time.perf_counter() - start_time,
+                                "seconds": earlier_seconds + (session_seconds() if seconds is None else seconds),
                                 "images_seen": earlier_images + images_seen,
                             }
                         ),
@@ -550,7 +551,7 @@ def _train(
         with _writing(out / LOSS_CSV):
             _write_loss_csv(out / LOSS_CSV, rows)
 
-    def save(step: int, path: Path) -> None:
+    def save(step: int, path: Path, seconds: float | None = None) -> None:
         """Rank 0: the weights at ``path``, then the state and losses (a crash in between keeps the older state)."""
         if not launch.is_main:
             return
@@ -561,7 +562,7 @@ def _train(
                 checkpoint_metadata(config, info, image_size, step, target_background),
                 identity=part_identity,
             )
-        save_state(step)
+        save_state(step, seconds)
         with _writing(out / LOSS_PNG):
             plot_loss_curve(rows, out / LOSS_PNG, title)
 
@@ -570,6 +571,11 @@ def _train(
     images_seen = 0
     data_wait = 0.0
     start_time = steady_from = time.perf_counter()
+
+    def session_seconds() -> float:
+        # Resuming a finished run trains nothing: it reports, and keeps, the run's own time.
+        return time.perf_counter() - start_time if config.steps > start_step else 0.0
+
     bar = tqdm(
         range(start_step, config.steps),
         initial=start_step,
@@ -635,8 +641,8 @@ def _train(
             save(done, out / "checkpoints" / f"step_{done:06d}.safetensors")
     bar.close()
     del batch_iterator  # stops the loader's worker processes
-    seconds = time.perf_counter() - start_time
-    save(config.steps, out / FINAL_MODEL)
+    seconds = session_seconds()
+    save(config.steps, out / FINAL_MODEL, seconds)  # the state records the time this run reports
     final_loss = float(np.mean([float(r["loss"]) for r in rows[-max(1, len(rows) // 20) :]]))
     steady_seconds = start_time + seconds - steady_from if config.steps > start_step + 1 else 0.0
     wait_fraction = data_wait / steady_seconds if steady_seconds > 0 else None
