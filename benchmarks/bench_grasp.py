@@ -49,6 +49,7 @@ from don_gym.grasp_benchmark import (  # noqa: E402
     GraspBenchmarkResult,
     check_targets,
     default_methods,
+    miss_table,
     outcome_table,
     run_grasp_benchmark,
     sweep_table,
@@ -466,6 +467,8 @@ def grasp(args: argparse.Namespace, work: Path, object_name: str) -> tuple[str, 
         + outcome_table(result)
         + "\n\nTargets (per 8 poses, scaled by the repeats):\n\n"
         + "\n".join(f"- {line}" for line in targets)
+        + "\n\n#### Why episodes were not placed\n\n"
+        + miss_table(result)
         + "\n\n#### Depth-sensor sweep (ideal -> D435)\n\n"
         + sweep_table(result)
         + (

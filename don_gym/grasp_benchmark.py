@@ -18,7 +18,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from don_gym.errors import DonGymError
-from don_gym.sim.task import FIXED_POSES, OUTCOMES
+from don_gym.sim.task import FIXED_POSES, GRASP_STEP_CLEARANCE_M, OUTCOMES
 
 #: The paper's four compared models (for the toolcap; ``{object}`` is replaced by the object name).
 DEFAULT_METHODS: tuple[str, ...] = (
@@ -33,6 +33,11 @@ DEFAULT_SENSORS: tuple[str, ...] = ("ideal", "d435@0.5", "d435")
 DEFAULT_IMAGE_SIZE: tuple[int, int] = (320, 240)
 #: Yaw errors above this (rad) count as a flipped (+axis reversed) grasp.
 FLIP_THRESHOLD_RAD = np.pi / 2
+#: A grasp within this distance (m) of the true grasp point and this yaw (rad) of the true +axis holds the
+#: part as the grasp planner meant (the distance is the room it leaves along the axis), so a placement
+#: that still fails is the placement's doing (:func:`miss_table`), not the descriptors'.
+ACCURATE_GRASP_M = GRASP_STEP_CLEARANCE_M
+ACCURATE_GRASP_YAW_RAD = float(np.deg2rad(5.0))
 
 
 @dataclass(frozen=True)
@@ -494,6 +499,37 @@ def outcome_table(result: GraspBenchmarkResult, sensor: str | None = None, poses
             f"| {method} | " + " | ".join(rates) + f" | {s['flipped']} | {_median_text(s['median_position_error_mm'])} "
             f"| {_median_text(s['median_yaw_error_deg'])} |"
         )
+    return "\n".join(lines)
+
+
+def miss_table(result: GraspBenchmarkResult) -> str:
+    """Markdown: per method, over every sensor and pose, the episodes that did not end placed, by where
+    they went wrong: no grasp (the part never lifted), a grasp off the true grasp point or +axis by more
+    than :data:`ACCURATE_GRASP_M` / :data:`ACCURATE_GRASP_YAW_RAD` (the descriptors or the agent; flips
+    included), or an accurate grasp whose placement failed (the part tilted or slid in the hand or the
+    cradle: the simulated placement, whatever the descriptors)."""
+    lines = [
+        f"Episodes not placed, by cause, over every sensor and pose ({len(result.episodes)} episodes); "
+        f"an accurate grasp is within {ACCURATE_GRASP_M * 1000:g} mm of the true grasp point and "
+        f"{math.degrees(ACCURATE_GRASP_YAW_RAD):g} deg of the true +axis.",
+        "",
+        "| method | episodes | not placed | no grasp | grasp off | accurate grasp, placement failed |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for method in result.config.methods:
+        episodes = [e for e in result.episodes if e["method"] == method]
+        missed = [e for e in episodes if e["outcome"] != "grasp_and_place"]
+        not_lifted = [e for e in missed if not e["lifted"]]
+        accurate = [
+            e
+            for e in missed
+            if e["lifted"]
+            and e["position_error_m"] is not None
+            and e["position_error_m"] <= ACCURATE_GRASP_M
+            and e["yaw_error_rad"] <= ACCURATE_GRASP_YAW_RAD
+        ]
+        off = len(missed) - len(not_lifted) - len(accurate)
+        lines.append(f"| {method} | {len(episodes)} | {len(missed)} | {len(not_lifted)} | {off} | {len(accurate)} |")
     return "\n".join(lines)
 
 

@@ -19,6 +19,7 @@ from don_gym.grasp_benchmark import (
     GraspBenchmarkResult,
     episode_seed,
     episode_tasks,
+    miss_table,
     outcome_table,
     parse_sensor,
     random_pose_seed,
@@ -80,6 +81,26 @@ def test_sweep_table_and_seeds() -> None:
     ]
     table = sweep_table(GraspBenchmarkResult(TINY, fake, 1.0))
     assert "| oracle | 1 (9-91%) / 2 (34-100%) | 0 (0-66%) / 1 (9-91%) |" in table
+
+
+def test_miss_table_tells_placement_failures_from_grasps_off_the_part() -> None:
+    tasks = episode_tasks(TINY)
+    episodes = [
+        {**dataclasses.asdict(t), "outcome": outcome, "lifted": outcome != "fail", "flipped": False}
+        | {"position_error_m": error_m, "yaw_error_rad": yaw_rad}
+        for t, (outcome, error_m, yaw_rad) in zip(
+            tasks,
+            (
+                ("grasp_and_place", 0.001, 0.01),
+                ("grasp_only", 0.004, 0.02),  # accurate grasp, then the placement failed
+                ("grasp_only", 0.004, 3.0),  # flipped: the descriptors' doing
+                ("fail", None, None),
+            ),
+            strict=True,
+        )
+    ]
+    table = miss_table(GraspBenchmarkResult(TINY, episodes, 1.0))
+    assert "| oracle | 4 | 3 | 1 | 1 | 1 |" in table
 
 
 def test_bad_inputs_fail_before_any_episode(tmp_path: Path, capsys) -> None:
