@@ -6,6 +6,9 @@
 
     python benchmarks/bench_env.py            # full run, records the "env" section of RESULTS.md
     python benchmarks/bench_env.py --quick    # short smoke run, records nothing
+
+The baseline is a benchmark-only dependency: ``pip install panda-gym`` first (a full run without it
+stops before measuring anything; ``--quick`` runs without it).
 """
 
 from __future__ import annotations
@@ -92,8 +95,12 @@ def main(argv: list[str] | None = None) -> int:
     # (ours truncates after 100 steps, panda-gym after 50), 25 Hz control. Ours simulates 10 steps of 4 ms with
     # up to 150 solver iterations, a V-HACD/slab steel part and null-space IK; panda-gym 20 steps of 2 ms with
     # PyBullet's defaults.
-    ours = gym.make("DONToolcapPick-v0", control="ee", image_size=None, sensor="ideal")
     baseline, baseline_name = make_panda_gym()
+    if baseline is None and not args.quick:
+        # A record without its baseline would read "target NOT met" for want of a comparison.
+        print(f"bench_env: {baseline_name}; `pip install panda-gym` (the baseline), or run --quick", file=sys.stderr)
+        return 2
+    ours = gym.make("DONToolcapPick-v0", control="ee", image_size=None, sensor="ideal")
     ours_rounds, base_rounds = [], []
     for r in range(rounds):
         ours_rounds.append(measure(ours, steps, seed=r))
