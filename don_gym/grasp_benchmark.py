@@ -504,10 +504,10 @@ def outcome_table(result: GraspBenchmarkResult, sensor: str | None = None, poses
 
 def miss_table(result: GraspBenchmarkResult) -> str:
     """Markdown: per method, over every sensor and pose, the episodes that did not end placed, by where
-    they went wrong: no grasp (the part never lifted), a grasp off the true grasp point or +axis by more
-    than :data:`ACCURATE_GRASP_M` / :data:`ACCURATE_GRASP_YAW_RAD` (the descriptors or the agent; flips
-    included), or an accurate grasp whose placement failed (the part tilted or slid in the hand or the
-    cradle: the simulated placement, whatever the descriptors)."""
+    they went wrong: no grasp (outcome ``"fail"``, as in :func:`outcome_table`), a grasp off the true
+    grasp point or +axis by more than :data:`ACCURATE_GRASP_M` / :data:`ACCURATE_GRASP_YAW_RAD` (the
+    descriptors or the agent; flips included), or an accurate grasp whose placement failed (the part
+    tilted or slid in the hand or the cradle: the simulated placement, whatever the descriptors)."""
     lines = [
         f"Episodes not placed, by cause, over every sensor and pose ({len(result.episodes)} episodes); "
         f"an accurate grasp is within {ACCURATE_GRASP_M * 1000:g} mm of the true grasp point and "
@@ -518,18 +518,18 @@ def miss_table(result: GraspBenchmarkResult) -> str:
     ]
     for method in result.config.methods:
         episodes = [e for e in result.episodes if e["method"] == method]
-        missed = [e for e in episodes if e["outcome"] != "grasp_and_place"]
-        not_lifted = [e for e in missed if not e["lifted"]]
-        accurate = [
-            e
-            for e in missed
-            if e["lifted"]
+        missed = sum(e["outcome"] != "grasp_and_place" for e in episodes)
+        failed = sum(e["outcome"] == "fail" for e in episodes)
+        accurate = sum(
+            e["outcome"] == "grasp_only"
             and e["position_error_m"] is not None
             and e["position_error_m"] <= ACCURATE_GRASP_M
             and e["yaw_error_rad"] <= ACCURATE_GRASP_YAW_RAD
-        ]
-        off = len(missed) - len(not_lifted) - len(accurate)
-        lines.append(f"| {method} | {len(episodes)} | {len(missed)} | {len(not_lifted)} | {off} | {len(accurate)} |")
+            for e in episodes
+        )
+        lines.append(
+            f"| {method} | {len(episodes)} | {missed} | {failed} | {missed - failed - accurate} | {accurate} |"
+        )
     return "\n".join(lines)
 
 

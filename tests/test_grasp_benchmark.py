@@ -86,7 +86,7 @@ def test_sweep_table_and_seeds() -> None:
 def test_miss_table_tells_placement_failures_from_grasps_off_the_part() -> None:
     tasks = episode_tasks(TINY)
     episodes = [
-        {**dataclasses.asdict(t), "outcome": outcome, "lifted": outcome != "fail", "flipped": False}
+        {**dataclasses.asdict(t), "outcome": outcome, "flipped": False}
         | {"position_error_m": error_m, "yaw_error_rad": yaw_rad}
         for t, (outcome, error_m, yaw_rad) in zip(
             tasks,

@@ -14,6 +14,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import check_shipped  # noqa: E402
 
+from don_gym.wrappers.simulated_keypoints import KeypointNoiseModel, shipped_noise_path  # noqa: E402
 from don_gym.zoo import shipped_names  # noqa: E402
 
 RERUN = (
@@ -49,8 +50,6 @@ def test_fingerprints_hold_on_this_machine() -> None:
 
 
 def test_shipped_noise_models_were_measured_on_the_shipped_networks() -> None:
-    from don_gym.wrappers.simulated_keypoints import KeypointNoiseModel, shipped_noise_path
-
     stale = []
     for name in shipped_names():
         path = shipped_noise_path(name)
