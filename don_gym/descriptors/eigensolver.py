@@ -33,6 +33,9 @@ _VOXEL_ACCEPT = 0.8  # ... until at least this fraction of the target count
 _REFINE_TOL = 2e-3  # stop refining when each needed eigenvector's estimated error is below (M-norm)
 _REFINE_TOL_COARSE = 1e-2  # the same on intermediate levels, which only give starting vectors
 _REFINE_MAXITER = 12
+# ARPACK's accuracy on the coarsest level: its eigenvectors only start the refinement, and differ from
+# the fine level's by the coarse discretisation (~1e-2), so machine precision there buys nothing.
+_COARSEST_TOL = 1e-6
 # l1-Jacobi smoothing, x += omega r / sum_j |a_ij|: where every weight of L is non-negative (zero row
 # sums) this is about Jacobi with 2/3; where obtuse angles give negative weights, as on fans and rows of
 # slivers, plain Jacobi can amplify some modes and the two-grid cycle diverge, while diag(sum_j |a_ij|)
@@ -49,13 +52,19 @@ _GUARD = 4
 
 
 def _direct_eigenpairs(
-    L: sp.spmatrix, mass: np.ndarray, count: int, shift: float = 1e-6, factor: object | None = None
+    L: sp.spmatrix,
+    mass: np.ndarray,
+    count: int,
+    shift: float = 1e-6,
+    factor: object | None = None,
+    tol: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Smallest ``count`` non-constant eigenpairs of ``L y = lambda M y`` (``mass`` the diagonal of M)
     for a connected mesh normalised to unit area (eigenvalues O(1-100)).
 
     Shift-invert Lanczos about ``-shift``; ``factor`` is a factorisation of ``L + shift * M`` (its
-    ``solve``) when the caller has one, else it is computed.
+    ``solve``) when the caller has one, else it is computed; ``tol`` is ARPACK's relative accuracy
+    of the eigenvalues (0: machine precision).
     """
     n = L.shape[0]
     Bm = sp.diags(mass)
@@ -69,7 +78,7 @@ def _direct_eigenpairs(
         solve = spla.LinearOperator((n, n), matvec=factor.solve, dtype=np.float64)
         start = 1.0 + 0.5 * np.sin(np.arange(n, dtype=np.float64))
         w, Y = spla.eigsh(
-            sp.csc_matrix(L), k=count + 1, M=sp.csc_matrix(Bm), sigma=-shift, which="LM", OPinv=solve, v0=start
+            sp.csc_matrix(L), k=count + 1, M=sp.csc_matrix(Bm), sigma=-shift, which="LM", OPinv=solve, v0=start, tol=tol
         )
         order = np.argsort(w)
         w, Y = w[order], Y[:, order]
@@ -307,7 +316,9 @@ class _Level:
             w, Y = coarse.eigenpairs(count, block, _REFINE_TOL_COARSE)
             self.iterations = coarse.iterations
         else:
-            w, Y = _direct_eigenpairs(coarse.L, coarse.mass, block, _PRECONDITIONER_SHIFT, self._coarse_lu)
+            w, Y = _direct_eigenpairs(
+                coarse.L, coarse.mass, block, _PRECONDITIONER_SHIFT, self._coarse_lu, _COARSEST_TOL
+            )
             self.iterations = []
         w, Y, iterations = _lobpcg(self._edges, self.mass, self.P @ Y, self._precondition, count, tol)
         self.iterations = [*self.iterations, iterations]
@@ -329,13 +340,24 @@ def _edge_form(L: sp.csr_matrix, dtype: type) -> tuple[sp.csr_matrix, sp.csr_mat
     of eps L_ii / (lambda m_i) relative (1 % in the first eigenvalue of a long thin shaft; on rows
     of slivers the residual drowned in them and LOBPCG stalled); the differences of a smooth x are
     small and exact, so this form keeps L x accurate."""
-    upper = sp.triu(L, k=1, format="coo")
-    edges = len(upper.data)
-    rows = np.repeat(np.arange(edges), 2)
-    cols = np.stack([upper.row, upper.col], axis=1).ravel()
-    signs = np.tile(np.array([1.0, -1.0], dtype=dtype), edges)
-    B = sp.csr_matrix((signs, (rows, cols)), shape=(edges, L.shape[0]))
-    weighted_sum = sp.csr_matrix(B.T.multiply((-upper.data).astype(dtype)[None, :]), dtype=dtype)
+    upper = sp.triu(L, k=1, format="csr")
+    edges = upper.nnz
+    row = np.repeat(np.arange(L.shape[0]), np.diff(upper.indptr))
+    # Row e of B is +1 at the edge's lower vertex, -1 at its higher one: two entries per row, built as CSR.
+    B = sp.csr_matrix(
+        (
+            np.tile(np.array([1.0, -1.0], dtype=dtype), edges),
+            np.stack([row, upper.indices], axis=1).ravel(),
+            np.arange(0, 2 * edges + 1, 2),
+        ),
+        shape=(edges, L.shape[0]),
+    )
+    weight = (-upper.data).astype(dtype)
+    weighted_sum = sp.csr_matrix(
+        (np.concatenate([weight, -weight]), (np.concatenate([row, upper.indices]), np.tile(np.arange(edges), 2))),
+        shape=(L.shape[0], edges),
+        dtype=dtype,
+    )
     return B, weighted_sum
 
 

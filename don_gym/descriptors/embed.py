@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 
 from don_gym.descriptors.eigensolver import _eigenpairs
 from don_gym.descriptors.field import DescriptorField, _as_mesh
-from don_gym.descriptors.laplacian import _components, normalize_to_unit_area
+from don_gym.descriptors.laplacian import _components, face_areas, normalize_to_unit_area
 from don_gym.errors import DonGymError, MeshError, SeveralPiecesError
 from don_gym.objects import ObjectModel
 
@@ -334,9 +334,7 @@ def embed(
     referenced[faces.ravel()] = True
     piece_labels = np.flatnonzero(np.bincount(label[faces[:, 0]]))
     if len(piece_labels) > 1:
-        tri = vertices[faces]
-        face_area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-        area_per_label = np.bincount(label[faces[:, 0]], face_area, minlength=label.max() + 1)
+        area_per_label = np.bincount(label[faces[:, 0]], face_areas(vertices, faces), minlength=label.max() + 1)
         largest = int(np.argmax(area_per_label))
         if components == "error":
             share = area_per_label[largest] / max(area_per_label.sum(), 1e-300)

@@ -30,19 +30,45 @@ _DELAUNAY_TOL = 1e-9  # cotangent weights of cocircular pairs (rectangles' diago
 _FLIP_TOL = 1e-6
 
 
+def _corners(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions of each face's corners 0, 1, 2, each (3, F) coordinate-major: the layout in which the
+    per-face arithmetic below runs on contiguous rows."""
+    columns = np.ascontiguousarray(vertices.T)
+    return tuple(columns[:, np.ascontiguousarray(faces[:, k])] for k in range(3))
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross products of (3, F) vectors stored coordinate-major (np.cross on the last axis of an (F, 3)
+    copy is several times slower)."""
+    return np.stack([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def _norm(a: np.ndarray) -> np.ndarray:
+    """Lengths (F,) of (3, F) vectors."""
+    return np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+
+
+def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Areas (F,) of the faces, in the square of the unit of ``vertices`` (N, 3)."""
+    return _areas(*_corners(vertices, faces))
+
+
+def _areas(c0: np.ndarray, c1: np.ndarray, c2: np.ndarray) -> np.ndarray:
+    return 0.5 * _norm(_cross(c1 - c0, c2 - c0))
+
+
 def normalize_to_unit_area(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float]:
     """Centre the vertices on their area-weighted centroid and scale the surface to unit area.
 
     Returns ``(vertices_normalized, area)`` where ``area`` is the original surface area; eigenvalues
     of the normalised mesh divided by ``area`` are those of the original one.
     """
-    tri = vertices[faces]
-    face_area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    corners = _corners(vertices, faces)
+    face_area = _areas(*corners)
     area = float(face_area.sum())
     if not area > 0 or not np.isfinite(area):
         raise MeshError(f"mesh has surface area {area:g}; expected a positive area (all faces are degenerate)")
-    face_centroid = (tri[:, 0] + tri[:, 1] + tri[:, 2]) / 3.0  # = tri.mean(axis=1), bit for bit, faster
-    centroid = (face_area[:, None] * face_centroid).sum(axis=0) / area
+    centroid = (sum(corners) @ face_area) / (3.0 * area)
     return (vertices - centroid) / math.sqrt(area), area
 
 
@@ -235,30 +261,29 @@ def cotan_laplacian(
     robust_laplacian is made for.
     """
     n = len(vertices)
-    corners = np.ascontiguousarray(vertices.T)[:, faces]  # (3 coordinates, F, 3 corners)
+    corners = _corners(vertices, faces)
     # Edge k is opposite corner k; its squared length and the face's doubled area give the
     # cotangent at corner k: (|a|^2 + |b|^2 - |e_k|^2) / (4 area) for its two other edges a, b.
-    edge = [corners[:, :, (k + 2) % 3] - corners[:, :, (k + 1) % 3] for k in range(3)]
-    length2 = [np.einsum("ij,ij->j", e, e) for e in edge]
-    normal = np.cross(edge[2], edge[1], axis=0)
-    twice_area = np.sqrt(np.einsum("ij,ij->j", normal, normal))
+    edge = [corners[(k + 2) % 3] - corners[(k + 1) % 3] for k in range(3)]
+    length2 = [e[0] * e[0] + e[1] * e[1] + e[2] * e[2] for e in edge]
+    twice_area = _norm(_cross(edge[2], edge[1]))
     if not np.all(twice_area > 0):
         return None
     lowest_cot = 1.0 / math.tan(max_angle) if max_angle < math.pi else -np.inf
-    rows, cols, weights = [], [], []
+    weights = []
     for k in range(3):
         cot = (length2[(k + 1) % 3] + length2[(k + 2) % 3] - length2[k]) / (2.0 * twice_area)
         if not np.all(cot >= lowest_cot):  # also catches non-finite values
             return None
         weights.append(0.5 * cot)  # half the cotangent of the angle at corner k weighs the opposite edge
-        rows.append(faces[:, (k + 1) % 3])
-        cols.append(faces[:, (k + 2) % 3])
-    i, j, w = np.concatenate(rows), np.concatenate(cols), np.concatenate(weights)
+    # Edge k joins corners k+1 and k+2; each is entered once per face with its pair of vertices in order.
+    i, j = faces[:, [1, 2, 0]].T.ravel(), faces[:, [2, 0, 1]].T.ravel()
     low, high = np.minimum(i, j), np.maximum(i, j)
-    faces_per_edge = sp.csr_matrix((np.ones(len(w)), (low, high)), shape=(n, n))
-    if faces_per_edge.nnz and faces_per_edge.data.max() > 2:
+    # One sparse assembly sums both an edge's weights (real part) and the faces it is in (imaginary part).
+    summed = sp.csr_matrix((np.concatenate(weights) * -1.0 + 1j, (low, high)), shape=(n, n))
+    if summed.nnz and summed.data.imag.max() > 2.5:
         return None
-    upper = sp.csr_matrix((-w, (low, high)), shape=(n, n))
+    upper = sp.csr_matrix((summed.data.real, summed.indices, summed.indptr), shape=(n, n))
     flipped = upper.data > _DELAUNAY_TOL
     if flipped.any():
         row = np.repeat(np.arange(n), np.diff(upper.indptr))[flipped]
@@ -267,7 +292,8 @@ def cotan_laplacian(
             return None
     off = upper + upper.T
     L = sp.csr_matrix(off - sp.diags(np.asarray(off.sum(axis=1)).ravel()))
-    mass = np.bincount(faces.ravel(), np.repeat(twice_area / 6.0, 3), minlength=n)
+    third = twice_area / 6.0
+    mass = sum(np.bincount(faces[:, k], third, minlength=n) for k in range(3))
     return L, mass
 
 
