@@ -6,8 +6,8 @@ object-centred crops: 128x128 for the toolcap, 256x192 for the shaft; fixed seed
 ``don_gym/shipped/<object>/<method>.safetensors`` and record its training time, images/s and final loss in
 benchmarks/RESULTS.md, one section per object (``shipped-<object>``). Each row names the scenes, steps and
 commit its network was made with; a run of some methods (``--methods``) keeps the rows of the object's other
-shipped networks, so the table always describes what is shipped. The shipped shaft self-supervised network is
-still the one trained on 16 scenes: ``--objects shaft --methods self-supervised --scenes 16`` remakes it.
+shipped networks, so the table always describes what is shipped. Every network of an object is trained on the
+same scenes.
 
     python benchmarks/train_shipped.py            # the shipped recipe
     python benchmarks/train_shipped.py --quick    # a smoke run into a temp dir (no copy)
