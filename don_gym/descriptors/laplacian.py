@@ -54,6 +54,7 @@ def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def _areas(c0: np.ndarray, c1: np.ndarray, c2: np.ndarray) -> np.ndarray:
+    """Areas (F,) of the triangles with corners ``c0``, ``c1``, ``c2`` (each (3, F), see :func:`_corners`)."""
     return 0.5 * _norm(_cross(c1 - c0, c2 - c0))
 
 
@@ -280,8 +281,8 @@ def cotan_laplacian(
     i, j = faces[:, [1, 2, 0]].T.ravel(), faces[:, [2, 0, 1]].T.ravel()
     low, high = np.minimum(i, j), np.maximum(i, j)
     # One sparse assembly sums both an edge's weights (real part) and the faces it is in (imaginary part).
-    summed = sp.csr_matrix((np.concatenate(weights) * -1.0 + 1j, (low, high)), shape=(n, n))
-    if summed.nnz and summed.data.imag.max() > 2.5:
+    summed = sp.csr_matrix((1j - np.concatenate(weights), (low, high)), shape=(n, n))
+    if summed.nnz and summed.data.imag.max() > 2:  # sums of ones: exact
         return None
     upper = sp.csr_matrix((summed.data.real, summed.indices, summed.indptr), shape=(n, n))
     flipped = upper.data > _DELAUNAY_TOL
