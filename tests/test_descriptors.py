@@ -338,7 +338,8 @@ def bench_descriptors():
         pytest.param(lambda b: b.scanned_sphere(10_000), False, True, id="scanned sphere"),
         # Nearly flat triangles: the fine level is robust_laplacian's.
         pytest.param(lambda b: b.scanned_bunny(3), True, False, id="scanned bunny"),
-        # Rows of long slivers (aspect ratio ~60): single-precision L x in edge form, l1-Jacobi.
+        # Rows of long slivers (aspect ratio ~60): L x in double precision, l1-Jacobi; a prolonged start
+        # accurate enough to stop after one LOBPCG step.
         pytest.param(lambda b: b.cad_cylinder(1024, rows=8), True, True, id="CAD cylinder"),
         # Long and thin, finely meshed along its length.
         pytest.param(lambda b: b.cad_shaft(420), True, True, id="CAD shaft"),
@@ -401,6 +402,30 @@ def test_background_maximises_the_distance_to_the_descriptors():
     best_on_grid = max(np.linalg.norm(points - g, axis=1).min() for g in grid[::7])
     assert found >= best_on_grid - 1e-6
     assert found > 0.2  # the hole is found, not a corner
+
+
+def test_background_search_on_a_shell_keeps_every_point_that_can_be_nearest(monkeypatch):
+    embed_module = importlib.import_module("don_gym.descriptors.embed")
+    rng = np.random.default_rng(1)
+    # Descriptors of a sphere-like part: a noisy shell about the cube's centre, where the search
+    # keeps a thinning band of points as its step shrinks.
+    direction = rng.standard_normal((20_000, 3))
+    points = 0.5 + (0.45 + 0.002 * rng.standard_normal((20_000, 1))) * direction / np.linalg.norm(
+        direction, axis=1, keepdims=True
+    )
+    full, around = embed_module._NearestByScan(points), embed_module._NearestAround(points)
+    x = np.array([0.51, 0.49, 0.5])
+    fx = float(full.query(x)[0])
+    directions = np.concatenate([np.eye(3), -np.eye(3)])
+    for step in [1 / 64, 1 / 64, 1 / 256, 1 / 1024, 1 / 1024, 1e-4]:
+        trial = np.clip(x + step * directions, 0.0, 1.0)
+        distance = around.distances(trial, x, fx, step)
+        assert np.array_equal(distance, full.query(trial)[0])  # bit for bit
+        x, fx = trial[int(np.argmax(distance))], float(distance.max())
+    assert len(around._kept) < len(points) // 4
+    background = D.background_descriptor(points)
+    monkeypatch.setattr(embed_module, "_NearestAround", embed_module._Nearest)  # every point, every query
+    assert np.array_equal(background, D.background_descriptor(points))
 
 
 def test_embed_background_is_far_from_all_descriptors(toolcap):

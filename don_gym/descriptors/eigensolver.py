@@ -42,8 +42,8 @@ _COARSEST_TOL = 1e-6
 # bounds A from above, so l1-Jacobi damps every mode.
 _L1_JACOBI_OMEGA = 4.0 / 3.0
 # The refinement needs eigenvectors to ~1e-3: single precision halves the memory traffic of its
-# sparse and dense products (L x in the edge form of _edge_form, which keeps it accurate);
-# Rayleigh-Ritz matrices are solved in double precision.
+# dense products and of the preconditioner; L x (see _lobpcg) and the Rayleigh-Ritz matrices are
+# computed in double precision.
 _REFINE_DTYPE = np.float32
 _GRAM_RTOL = 1e-6  # Rayleigh-Ritz drops directions whose Gram eigenvalue is below this (relative)
 _PRECONDITIONER_SHIFT = 1.0  # sigma of L + sigma*M on unit-area meshes (lambda_1 ~ 0.3-25)
@@ -286,7 +286,6 @@ class _Level:
         row_l1 = np.asarray(abs(shifted).sum(axis=1)).ravel()
         self._smoother = (_L1_JACOBI_OMEGA / row_l1).astype(_REFINE_DTYPE)[:, None]
         self._P_single, self._PT_single = self.P.astype(_REFINE_DTYPE), self.PT.astype(_REFINE_DTYPE)
-        self._edges = _edge_form(self.L, _REFINE_DTYPE)
         coarse = self.coarse
         self._coarse_lu = _factorize_spd(coarse.L + sp.diags(_PRECONDITIONER_SHIFT * coarse.mass))
 
@@ -320,7 +319,7 @@ class _Level:
                 coarse.L, coarse.mass, block, _PRECONDITIONER_SHIFT, self._coarse_lu, _COARSEST_TOL
             )
             self.iterations = []
-        w, Y, iterations = _lobpcg(self._edges, self.mass, self.P @ Y, self._precondition, count, tol)
+        w, Y, iterations = _lobpcg(self.L, self.mass, self.P @ Y, self._precondition, count, tol)
         self.iterations = [*self.iterations, iterations]
         return w, Y
 
@@ -331,34 +330,6 @@ class _CoarseningFailed(RuntimeError):
 
 class _NotConverged(RuntimeError):
     pass
-
-
-def _edge_form(L: sp.csr_matrix, dtype: type) -> tuple[sp.csr_matrix, sp.csr_matrix]:
-    """``(B, B^T W)`` with ``L = B^T W B`` for a Laplacian with zero row sums: B (edges, n) takes
-    the difference x_i - x_j along each edge, W its weight -L_ij. In single precision L x summed
-    from L's entries cancels terms of size L_ii x_i down to lambda m_i x_i, with rounding errors
-    of eps L_ii / (lambda m_i) relative (1 % in the first eigenvalue of a long thin shaft; on rows
-    of slivers the residual drowned in them and LOBPCG stalled); the differences of a smooth x are
-    small and exact, so this form keeps L x accurate."""
-    upper = sp.triu(L, k=1, format="csr")
-    edges = upper.nnz
-    row = np.repeat(np.arange(L.shape[0]), np.diff(upper.indptr))
-    # Row e of B is +1 at the edge's lower vertex, -1 at its higher one: two entries per row, built as CSR.
-    B = sp.csr_matrix(
-        (
-            np.tile(np.array([1.0, -1.0], dtype=dtype), edges),
-            np.stack([row, upper.indices], axis=1).ravel(),
-            np.arange(0, 2 * edges + 1, 2),
-        ),
-        shape=(edges, L.shape[0]),
-    )
-    weight = (-upper.data).astype(dtype)
-    weighted_sum = sp.csr_matrix(
-        (np.concatenate([weight, -weight]), (np.concatenate([row, upper.indices]), np.tile(np.arange(edges), 2))),
-        shape=(L.shape[0], edges),
-        dtype=dtype,
-    )
-    return B, weighted_sum
 
 
 def _rayleigh_ritz(S: np.ndarray, AS: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
@@ -380,7 +351,7 @@ def _rayleigh_ritz(S: np.ndarray, AS: np.ndarray, m: int) -> tuple[np.ndarray, n
 
 
 def _lobpcg(
-    edges: tuple[sp.csr_matrix, sp.csr_matrix],
+    L: sp.csr_matrix,
     mass: np.ndarray,
     X0: np.ndarray,
     precond: Callable[[np.ndarray], np.ndarray],
@@ -388,7 +359,7 @@ def _lobpcg(
     tol: float,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """Block LOBPCG (Knyazev 2001) for the smallest eigenpairs of ``A x = lambda M x`` (``mass`` the
-    diagonal of M, A given by :func:`_edge_form`) orthogonal to constants, from the start block
+    diagonal of M, A = ``L``) orthogonal to constants, from the start block
     ``X0`` (n, m); ``precond`` approximates ``(A + sigma M)^-1``. Converged when the estimated
     remaining error of each of the first ``n_check`` Ritz vectors is below ``tol`` (M-norm); raises
     _NotConverged after :data:`_REFINE_MAXITER` iterations.
@@ -398,11 +369,14 @@ def _lobpcg(
     # Solved for z = M^(1/2) x, an ordinary symmetric eigenproblem (M is diagonal): no M-products
     # to carry along, and the M-norm of x is the 2-norm of z.
     dtype = _REFINE_DTYPE
-    root = np.sqrt(mass).astype(dtype)[:, None]
-    difference, weighted_sum = edges
+    root64 = np.sqrt(mass)[:, None]
+    root = root64.astype(dtype)
 
     def apply_A(Z: np.ndarray) -> np.ndarray:
-        return (weighted_sum @ (difference @ (Z / root))) / root
+        # In double precision: in single, L x summed from L's entries cancels terms of size L_ii x_i
+        # down to lambda m_i x_i, with rounding errors of eps L_ii / (lambda m_i) relative (1 % in the
+        # first eigenvalue of a long thin shaft; on rows of slivers the residual drowned in them).
+        return ((L @ (Z / root64)) / root64).astype(dtype)
 
     constant = root / dtype(math.sqrt(float(mass.sum())))
 
@@ -436,14 +410,15 @@ def _lobpcg(
         width = 3 * m
         # Size of this step outside the previous subspace (X is orthonormal), per needed vector.
         # Convergence is linear, so the remaining error is the geometric tail step * r / (1 - r)
-        # with the rate r estimated from the last two steps.
+        # with the rate r estimated from the last two steps; after the first step, whose rate is not
+        # known yet, with the largest rate the estimate allows (where the prolonged start was already
+        # accurate, as on finely meshed CAD parts, its first step is that small).
         step_needed = S[:, 2 * m : 2 * m + n_check]
         step = np.sqrt(np.einsum("ij,ij->j", step_needed, step_needed, dtype=np.float64))
-        if previous_step is not None:
-            rate = np.minimum(step / np.maximum(previous_step, 1e-300), _MAX_RATE)
-            remaining = float(np.max(step * rate / (1.0 - rate)))
-            if remaining < tol:
-                return lam, (S[:, :m] / root).astype(np.float64), iteration
+        rate = _MAX_RATE if previous_step is None else np.minimum(step / np.maximum(previous_step, 1e-300), _MAX_RATE)
+        remaining = float(np.max(step * rate / (1.0 - rate)))
+        if remaining < tol:
+            return lam, (S[:, :m] / root).astype(np.float64), iteration
         previous_step = step
     raise _NotConverged(f"LOBPCG did not converge in {_REFINE_MAXITER} iterations (error estimate {remaining:.1e})")
 

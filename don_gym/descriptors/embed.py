@@ -118,24 +118,25 @@ def descriptor_functions(
 
 
 def _compass_search(
-    tree: cKDTree | _Nearest,
+    nearest: _Nearest | _NearestAround,
     start: np.ndarray,
     step: float,
     min_step: float,
     center: np.ndarray | None = None,
     reach: float = 0.0,
 ) -> tuple[np.ndarray, float]:
-    """Maximise the distance to the nearest point of ``tree`` over the unit cube by compass search
-    (move along +-axes while that helps, else halve the step); with ``center``, stay within
+    """Maximise the distance to the nearest point (``nearest.distances``) over the unit cube by compass
+    search (move along +-axes while that helps, else halve the step); with ``center``, stay within
     ``reach`` (max-norm) of it."""
     dim = len(start)
     directions = np.concatenate([np.eye(dim), -np.eye(dim)])
-    x, fx = start.copy(), float(tree.query(start)[0])
+    x = start.copy()
+    fx = float(nearest.distances(start[None], x, math.inf, 0.0)[0])
     while step > min_step:
         trial = np.clip(x + step * directions, 0.0, 1.0)
         if center is not None:
             trial = np.clip(trial, center - reach, center + reach)
-        d, _ = tree.query(trial)
+        d = nearest.distances(trial, x, fx, step)
         i = int(np.argmax(d))
         if d[i] > fx + 1e-12:
             x, fx = trial[i], float(d[i])
@@ -195,6 +196,11 @@ class _Nearest:
         self._seconds = [0.0, 0.0]
         self._calls = [0, 0]
 
+    def distances(self, trial: np.ndarray, x: np.ndarray, fx: float, step: float) -> np.ndarray:
+        """(K,) distances of the ``trial`` points (K, D) to their nearest points (``x``, ``fx``, ``step``:
+        the search's state, which :class:`_NearestAround` uses)."""
+        return np.asarray(self.query(trial)[0])
+
     def query(self, x: np.ndarray) -> tuple[np.ndarray | float, None]:
         if 0 in self._calls:
             k = self._calls.index(0)
@@ -209,6 +215,54 @@ class _Nearest:
         return distance, None
 
 
+class _NearestAround:
+    """Exact nearest-point distances for a compass search, scanning (:class:`_NearestByScan`) only the
+    points that can be nearest to one of its trials.
+
+    A trial t lies within ``step`` of the current point x, so its nearest point p satisfies
+    |p - t| = d(t) <= d(x) + step and |p - x| <= d(x) + 2 step. The points kept are those within
+    ``d(a) + 2 (s_a + m)`` of an anchor a (the point, step s_a and margin m = 2 s_a when they were
+    kept), which holds every such p while |x - a| + step <= s_a + m; otherwise, and whenever the step
+    has halved, they are kept anew around x. Where the points surround the searched point (a shell of
+    descriptors about its centre), a step of 1e-3 keeps a thin band of them instead of all. Distances
+    are those of the full scan, bit for bit: each point's distance is computed the same way whatever
+    else is scanned.
+    """
+
+    def __init__(self, points: np.ndarray):
+        self._all = points
+        self._kept = points
+        self._scan = _NearestByScan(points)
+        self._anchor: np.ndarray | None = None
+        self._anchor_step = self._radius = math.inf
+
+    def _keep(self, x: np.ndarray, fx: float, step: float) -> None:
+        radius = fx + 6.0 * step
+        # The new ball lies inside the kept one when |x - a| + radius <= the kept radius: filter those.
+        source = (
+            self._kept
+            if self._anchor is not None and float(np.linalg.norm(x - self._anchor)) + radius <= self._radius
+            else self._all
+        )
+        offset = source - x
+        # Rounding of the squared distances (~1e-16 relative) must never drop a point on the ball's edge.
+        bound = radius * (1.0 + 1e-9) + 1e-12
+        self._kept = source[np.einsum("ij,ij->i", offset, offset) <= bound * bound]
+        self._scan = _NearestByScan(self._kept)
+        self._anchor, self._anchor_step, self._radius = x.copy(), step, bound
+
+    def distances(self, trial: np.ndarray, x: np.ndarray, fx: float, step: float) -> np.ndarray:
+        """(K,) distances of the ``trial`` points (K, D), each within ``step`` of ``x`` (distance ``fx``
+        to its nearest point), to their nearest points."""
+        if math.isfinite(fx):
+            valid = (
+                self._anchor is not None and float(np.linalg.norm(x - self._anchor)) + step <= 3.0 * self._anchor_step
+            )
+            if not valid or step < self._anchor_step:
+                self._keep(x, fx, step)
+        return np.asarray(self._scan.query(trial)[0])
+
+
 def background_descriptor(descriptors: np.ndarray, grid_points: int = 1000) -> np.ndarray:
     """The point of the unit cube [0, 1]^D that maximises the distance to the nearest descriptor.
 
@@ -219,10 +273,11 @@ def background_descriptor(descriptors: np.ndarray, grid_points: int = 1000) -> n
        one; 4096 random corners for D > 12) and a regular grid of about ``grid_points`` points
        (random points for D > 8, seeded, so the result is deterministic), then refine the best 4 by
        compass search (steps down to 1/256).
-    2. Exactly, for the best 2 of those: every descriptor that can be the nearest one to a point
-       within ``s = sqrt(D)/64`` of it lies in a ball (radius = subset distance + 2 s), so
-       distances to that ball (:class:`_Nearest`) are exact; compass search within that reach down
-       to steps of 1e-4.
+    2. Exactly, for the best 2 of those (once where both searches ended at the same point): every
+       descriptor that can be the nearest one to a point within ``s = sqrt(D)/64`` of it lies in a
+       ball (radius = subset distance + 2 s), so distances to that ball are exact; compass search
+       within that reach down to steps of 1e-4, scanning the ever fewer points that can be nearest
+       to its next trials (:class:`_NearestAround`).
 
     Args:
         descriptors: (N, D) values in [0, 1].
@@ -262,11 +317,15 @@ def background_descriptor(descriptors: np.ndarray, grid_points: int = 1000) -> n
 
     reach = cell
     best_point, best_distance = None, -1.0
+    searched: list[np.ndarray] = []
     for x0, r0 in coarse[:2]:
+        if any(np.array_equal(x0, s) for s in searched):
+            continue  # the coarse searches met: the same start gives the same result
+        searched.append(x0)
         offset = points - x0
         radius = r0 + 2 * reach * math.sqrt(dim)
         near = points[np.einsum("ij,ij->i", offset, offset) <= radius * radius]
-        x, fx = _compass_search(_Nearest(near), x0, cell, 1e-4, center=x0, reach=reach)
+        x, fx = _compass_search(_NearestAround(near), x0, cell, 1e-4, center=x0, reach=reach)
         if fx > best_distance:
             best_point, best_distance = x, fx
     return best_point.astype(np.float32)
