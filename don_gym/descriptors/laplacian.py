@@ -143,7 +143,8 @@ def intrinsic_delaunay_laplacian(
         return None  # a vertex where two or more fans of faces meet: the tufted cover differs there
 
     first = order[starts]
-    length = np.linalg.norm(vertices[tail[first]] - vertices[head[first]], axis=1)
+    columns = np.ascontiguousarray(vertices.T)
+    length = _norm(columns[:, tail[first]] - columns[:, head[first]])
     # Mollification as robust_laplacian's: lengthen every edge by the least amount that gives every
     # face a triangle-inequality margin of MOLLIFY_FACTOR times the mean edge length.
     sides = length[face_edge]
@@ -167,12 +168,16 @@ def intrinsic_delaunay_laplacian(
     # for cocircular pairs, which the threshold leaves unflipped, so the order of flips does not matter.
     rng = np.random.default_rng(0)
     active = np.arange(n_edges)
+    # Every edge's weight: those of a flipped quad's edges, the only ones a flip changes, are recomputed
+    # in the next round (the same arithmetic as edge_weights, since halving is exact).
+    weights = edge_weights()
     for round_ in range(max_rounds):
         if round_ == 0:
-            weight = edge_weights()
+            weight = weights
         else:
             weight = 0.5 * cot_opposite(side_face[active, 0], side_corner[active, 0])
             weight += 0.5 * cot_opposite(side_face[active, 1], side_corner[active, 1])
+            weights[active] = weight
         candidates = active[weight < -_FLIP_TOL]
         if len(candidates) == 0:
             break
@@ -214,7 +219,7 @@ def intrinsic_delaunay_laplacian(
         return None
 
     # Each edge once: its end points are the vertices at the other two corners of either face.
-    weight = edge_weights()
+    weight = weights
     face, corner = side_face[:, 0], side_corner[:, 0]
     i, j = corner_vertex[face, (corner + 1) % 3], corner_vertex[face, (corner + 2) % 3]
     # An edge flipped into a loop at one vertex adds equally to a diagonal entry and its row sum.
