@@ -253,7 +253,8 @@ class _NearestAround:
 
     def distances(self, trial: np.ndarray, x: np.ndarray, fx: float, step: float) -> np.ndarray:
         """(K,) distances of the ``trial`` points (K, D), each within ``step`` of ``x`` (distance ``fx``
-        to its nearest point), to their nearest points."""
+        to its nearest point), to their nearest points; ``fx`` infinite (the search's first query, of
+        its start point) scans the points kept so far."""
         if math.isfinite(fx):
             valid = (
                 self._anchor is not None and float(np.linalg.norm(x - self._anchor)) + step <= 3.0 * self._anchor_step

@@ -170,11 +170,9 @@ def intrinsic_delaunay_laplacian(
     active = np.arange(n_edges)
     # Every edge's weight: those of a flipped quad's edges, the only ones a flip changes, are recomputed
     # in the next round (the same arithmetic as edge_weights, since halving is exact).
-    weights = edge_weights()
+    weights = weight = edge_weights()
     for round_ in range(max_rounds):
-        if round_ == 0:
-            weight = weights
-        else:
+        if round_ > 0:
             weight = 0.5 * cot_opposite(side_face[active, 0], side_corner[active, 0])
             weight += 0.5 * cot_opposite(side_face[active, 1], side_corner[active, 1])
             weights[active] = weight
@@ -219,11 +217,11 @@ def intrinsic_delaunay_laplacian(
         return None
 
     # Each edge once: its end points are the vertices at the other two corners of either face.
-    weight = weights
     face, corner = side_face[:, 0], side_corner[:, 0]
     i, j = corner_vertex[face, (corner + 1) % 3], corner_vertex[face, (corner + 2) % 3]
     # An edge flipped into a loop at one vertex adds equally to a diagonal entry and its row sum.
-    off = sp.csr_matrix((np.concatenate([-weight, -weight]), (np.concatenate([i, j]), np.concatenate([j, i]))), (n, n))
+    rows, cols = np.concatenate([i, j]), np.concatenate([j, i])
+    off = sp.csr_matrix((np.concatenate([-weights, -weights]), (rows, cols)), (n, n))
     L = sp.csr_matrix(off - sp.diags(np.asarray(off.sum(axis=1)).ravel()))
     sides = length[face_edge]
     area = _cotangent(sides[:, 0], sides[:, 1], sides[:, 2])[1]
