@@ -22,6 +22,7 @@ for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import contextlib  # noqa: E402
+import importlib  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -265,6 +266,71 @@ def robust_fine_level() -> Iterator[None]:
         eigensolver.cotan_laplacian = gate
 
 
+#: embed's stages for :func:`embed_stages`: (stage, module, functions timed as that stage). A call made
+#: inside another timed call counts towards the outer one (robust_laplacian's pass inside the fine
+#: level's `_robust`).
+STAGES: list[tuple[str, str, tuple[str, ...]]] = [
+    ("checks & hash", "don_gym.descriptors.embed", ("_as_mesh",)),
+    ("pieces & unit area", "don_gym.descriptors.embed", ("_components", "face_areas", "normalize_to_unit_area")),
+    ("fine Laplacian", "don_gym.descriptors.eigensolver", ("cotan_laplacian", "_robust")),
+    (
+        "coarse levels",
+        "don_gym.descriptors.eigensolver",
+        ("_coarsen", "_drop_unreferenced", "_components", "mesh_laplacian"),
+    ),
+    ("eigensolve", "don_gym.descriptors.eigensolver", ("_direct_eigenpairs", "_lobpcg", "_Level._prepare")),
+    ("descriptors & background", "don_gym.descriptors.embed", ("descriptor_functions", "background_descriptor")),
+]
+
+
+@contextlib.contextmanager
+def stage_timer(spent: dict[str, float]) -> Iterator[None]:
+    """Adds the wall-clock seconds of each of :data:`STAGES` spent inside the block to ``spent``, by
+    wrapping the functions where embed's modules look them up."""
+    depth = [0]
+    patched: list[tuple[object, str, object]] = []
+
+    def timed(stage: str, fn: Callable) -> Callable:
+        def wrapper(*args, **kwargs):
+            if depth[0]:
+                return fn(*args, **kwargs)
+            depth[0] += 1
+            start = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                spent[stage] = spent.get(stage, 0.0) + time.perf_counter() - start
+                depth[0] -= 1
+
+        return wrapper
+
+    try:
+        for stage, module_name, names in STAGES:
+            module = importlib.import_module(module_name)
+            for name in names:
+                owner, _, attribute = name.rpartition(".")
+                target = getattr(module, owner) if owner else module
+                original = getattr(target, attribute)
+                patched.append((target, attribute, original))
+                setattr(target, attribute, timed(stage, original))
+        yield
+    finally:
+        for target, attribute, original in reversed(patched):
+            setattr(target, attribute, original)
+
+
+def embed_stages(mesh: trimesh.Trimesh, dim: int, symmetric: bool) -> dict[str, float]:
+    """Seconds of one ``embed(mesh, dim, symmetric)`` per stage of :data:`STAGES`, its ``total`` and
+    ``other`` (what no stage covers: argument checks, the descriptor field's assembly)."""
+    spent: dict[str, float] = {}
+    with stage_timer(spent):
+        start = time.perf_counter()
+        D.embed(mesh, dim, symmetric)
+        spent["total"] = time.perf_counter() - start
+    spent["other"] = spent["total"] - sum(spent.get(stage, 0.0) for stage, _, _ in STAGES)
+    return spent
+
+
 def compare_laplacians(name: str, vertices: np.ndarray, faces: np.ndarray, repeats: int) -> dict[str, object]:
     """robust_laplacian's Laplacian against don_gym's ``mesh_laplacian`` on the unit-area mesh: best
     times of ``repeats`` interleaved runs, which path computed don_gym's, and the largest difference
@@ -342,6 +408,7 @@ def main(argv: list[str] | None = None) -> int:
         for symmetric in modes:
             embed_time = direct_time = own_direct_time = robust_time = background_time = np.inf
             field = baseline = groups = robust_field = None
+            stages: dict[str, float] = {"total": np.inf}
             for _ in range(repeats):  # interleaved, so that load from other work hits all alike
                 t, field = best_time(partial(D.embed, mesh, args.dim, symmetric, method="auto"), 1)
                 embed_time = min(embed_time, t)
@@ -358,6 +425,9 @@ def main(argv: list[str] | None = None) -> int:
                     robust_time = min(robust_time, t)
                 t, _ = best_time(partial(D.background_descriptor, field.vertex_descriptors), 1)
                 background_time = min(background_time, t)
+                if len(mesh.vertices) >= 35_000:
+                    run = embed_stages(mesh, args.dim, symmetric)
+                    stages = run if run["total"] < stages["total"] else stages
             grouped = False
             if baseline is None:
                 difference = robust_difference = float("nan")
@@ -397,6 +467,7 @@ def main(argv: list[str] | None = None) -> int:
                     "modulo_basis": grouped,
                     "same_groups": same_groups,
                     "groups": field.groups,
+                    "stages": stages,
                 }
             )
 
@@ -463,6 +534,29 @@ def main(argv: list[str] | None = None) -> int:
                 else ""
             ),
         ]
+    staged = [r for r in large if np.isfinite(r["stages"]["total"])]
+    if staged:
+        names = [stage for stage, _, _ in STAGES] + ["other"]
+        lines += [
+            "",
+            "**Where embed's time goes** (meshes with >= 35k vertices; the stages of the fastest of the same "
+            "number of instrumented embed runs, seconds): *budget* = *direct s* / 5, the time embed has for "
+            "the 5x target; *checks & hash* = validating the mesh and its content hash; *pieces & unit area* = "
+            "connected pieces, centring and scaling; *fine Laplacian* = `cotan_laplacian` or, where the mesh "
+            "fails its gate, the intrinsic-Delaunay Laplacian; *coarse levels* = clustering, prolongation and "
+            "the coarse meshes' Laplacians; *eigensolve* = coarsest direct solve, two-grid set-up and LOBPCG "
+            "refinement; *descriptors & background* = groups, sign rule, normalisation and the background "
+            "search; *other* = the rest.",
+            "",
+            "| mesh | symmetric | direct s | budget s | embed s | " + " | ".join(f"{n} s" for n in names) + " |",
+            "|---|---|---:|---:|---:|" + "---:|" * len(names),
+        ]
+        for r in staged:
+            st = r["stages"]
+            lines.append(
+                f"| {r['mesh']} | {'yes' if r['symmetric'] else 'no'} | {r['direct_s']:.3f} | {r['direct_s'] / 5:.3f} "
+                f"| {st['total']:.3f} | " + " | ".join(f"{st.get(n, 0.0):.3f}" for n in names) + " |"
+            )
     lines += [
         "",
         "**The Laplacian alone** (unit-area mesh, best of the same runs): robust_laplacian's against "
