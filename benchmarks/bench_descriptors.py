@@ -546,7 +546,7 @@ def main(argv: list[str] | None = None) -> int:
             "fails its gate, the intrinsic-Delaunay Laplacian; *coarse levels* = clustering, prolongation and "
             "the coarse meshes' Laplacians; *eigensolve* = coarsest direct solve, two-grid set-up and LOBPCG "
             "refinement; *descriptors & background* = groups, sign rule, normalisation and the background "
-            "search; *other* = the rest.",
+            "search, the same step as the direct baseline's last one; *other* = the rest.",
             "",
             "| mesh | symmetric | direct s | budget s | embed s | " + " | ".join(f"{n} s" for n in names) + " |",
             "|---|---|---:|---:|---:|" + "---:|" * len(names),
