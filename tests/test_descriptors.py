@@ -237,6 +237,21 @@ def test_intrinsic_flips_give_robust_laplacians_operator_on_a_closed_manifold_me
     assert abs(L_auto - L).max() == 0 and np.array_equal(mass_auto, mass)
 
 
+def test_intrinsic_flips_through_a_long_cascade_give_robust_laplacians_operator(bench_descriptors):
+    # Faces fanned over collinear points: each needle becomes non-Delaunay only once its neighbour has
+    # flipped, so the flips run through hundreds of rounds of a few edges each.
+    mesh = bench_descriptors.fan_box(1250)
+    vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+    L_robust, mass_robust = _robust_pair(vertices, faces)
+    L, mass = D.intrinsic_delaunay_laplacian(vertices, faces)
+    assert (L - sp.diags(L.diagonal())).max() <= 1e-6  # no weight below robust_laplacian's flip threshold
+    assert abs(L - L_robust).max() < 1e-9 * abs(L_robust).max()
+    # Rectangles of the ladders across each face are cocircular: which of their diagonals is kept moves
+    # lumped mass between their corners, but not the total.
+    assert np.abs(mass - mass_robust).max() < 1e-3 * mass_robust.max()
+    assert mass.sum() == pytest.approx(mass_robust.sum(), rel=1e-9)
+
+
 def _open_cap(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     faces = faces[vertices[faces].mean(axis=1)[:, 2] < 0.3]
     used, faces = np.unique(faces, return_inverse=True)

@@ -151,11 +151,19 @@ def intrinsic_delaunay_laplacian(
     margin = sides.sum(axis=1, keepdims=True) - 2.0 * sides
     length = length + max(0.0, float((MOLLIFY_FACTOR * length.mean() - margin).max()))
 
+    # Flat views (the arrays are C-contiguous): slot 3 f + k is face f's corner k and the edge opposite
+    # it, slot 2 e + s side s of edge e. The flip rounds below index these: many rounds are only a few
+    # edges, where the cost of a two-array fancy index, not the arithmetic, would dominate.
+    corner_at, edge_at = corner_vertex.reshape(-1), face_edge.reshape(-1)
+    side_face_at, side_corner_at = side_face.reshape(-1), side_corner.reshape(-1)
+    following, preceding = np.array([1, 2, 0]), np.array([2, 0, 1])  # corner k -> k + 1, k + 2 (mod 3)
+
     def cot_opposite(face: np.ndarray, corner: np.ndarray) -> np.ndarray:
-        edges = face_edge[face]
-        rows = np.arange(len(face))
+        slot = 3 * face
         return _cotangent(
-            length[edges[rows, (corner + 1) % 3]], length[edges[rows, (corner + 2) % 3]], length[edges[rows, corner]]
+            length[edge_at[slot + following[corner]]],
+            length[edge_at[slot + preceding[corner]]],
+            length[edge_at[slot + corner]],
         )[0]
 
     def edge_weights() -> np.ndarray:
@@ -168,32 +176,40 @@ def intrinsic_delaunay_laplacian(
     # for cocircular pairs, which the threshold leaves unflipped, so the order of flips does not matter.
     rng = np.random.default_rng(0)
     active = np.arange(n_edges)
+    # Per face, the highest priority among its candidates; reset after each round where it was set, so
+    # that a round costs in proportion to its candidates (flips cascade through thousands of rounds of a
+    # few edges each over fans of needles), not to the mesh.
+    highest = np.full(n_faces, -1.0)
     # Every edge's weight: those of a flipped quad's edges, the only ones a flip changes, are recomputed
     # in the next round (the same arithmetic as edge_weights, since halving is exact).
     weights = weight = edge_weights()
     for round_ in range(max_rounds):
         if round_ > 0:
-            weight = 0.5 * cot_opposite(side_face[active, 0], side_corner[active, 0])
-            weight += 0.5 * cot_opposite(side_face[active, 1], side_corner[active, 1])
+            cot = cot_opposite(side_face[active].ravel(), side_corner[active].ravel())  # both sides, interleaved
+            weight = 0.5 * cot[0::2] + 0.5 * cot[1::2]
             weights[active] = weight
         candidates = active[weight < -_FLIP_TOL]
         if len(candidates) == 0:
             break
         # Flip the candidates whose random priority is the highest among the candidates of both faces.
         priority = rng.random(len(candidates))
-        highest = np.full(n_faces, -1.0)
-        np.maximum.at(highest, side_face[candidates, 0], priority)
-        np.maximum.at(highest, side_face[candidates, 1], priority)
-        wins = (highest[side_face[candidates, 0]] == priority) & (highest[side_face[candidates, 1]] == priority)
+        face_0, face_1 = side_face_at[2 * candidates], side_face_at[2 * candidates + 1]
+        np.maximum.at(highest, face_0, priority)
+        np.maximum.at(highest, face_1, priority)
+        wins = (highest[face_0] == priority) & (highest[face_1] == priority)
+        highest[face_0] = highest[face_1] = -1.0
         edge = candidates[wins]
         # Face f = (k, i, j) from its corner opposite the edge, face g = (l, j, i): the edge i-j
         # becomes k-l, f = (k, i, l) and g = (l, j, k), each corner keeping its slot.
-        f, g = side_face[edge, 0], side_face[edge, 1]
-        cf, cg = side_corner[edge, 0], side_corner[edge, 1]
-        cf1, cf2, cg1, cg2 = (cf + 1) % 3, (cf + 2) % 3, (cg + 1) % 3, (cg + 2) % 3
-        vertex_k, vertex_l = corner_vertex[f, cf], corner_vertex[g, cg]
-        edge_jk, edge_ki = face_edge[f, cf1], face_edge[f, cf2]
-        edge_il, edge_lj = face_edge[g, cg1], face_edge[g, cg2]
+        side_0 = 2 * edge
+        f, g = side_face_at[side_0], side_face_at[side_0 + 1]
+        cf, cg = side_corner_at[side_0], side_corner_at[side_0 + 1]
+        cf1, cg1 = following[cf], following[cg]
+        f_cf, f_cf1, f_cf2 = 3 * f + cf, 3 * f + cf1, 3 * f + preceding[cf]
+        g_cg, g_cg1, g_cg2 = 3 * g + cg, 3 * g + cg1, 3 * g + preceding[cg]
+        vertex_k, vertex_l = corner_at[f_cf], corner_at[g_cg]
+        edge_jk, edge_ki = edge_at[f_cf1], edge_at[f_cf2]
+        edge_il, edge_lj = edge_at[g_cg1], edge_at[g_cg2]
         # The new length: lay the two faces out in the plane, i at the origin, j on the x axis.
         ij, ik, jk, il, lj = length[edge], length[edge_ki], length[edge_jk], length[edge_il], length[edge_lj]
         x_k = (ij * ij + ik * ik - jk * jk) / (2.0 * ij)
@@ -201,18 +217,17 @@ def intrinsic_delaunay_laplacian(
         y_k = np.sqrt(np.maximum(ik * ik - x_k * x_k, 0.0))
         y_l = np.sqrt(np.maximum(il * il - x_l * x_l, 0.0))
         length[edge] = np.hypot(x_k - x_l, y_k + y_l)
-        corner_vertex[f, cf2], corner_vertex[g, cg2] = vertex_l, vertex_k
-        face_edge[f, cf], face_edge[f, cf1] = edge_il, edge
-        face_edge[g, cg], face_edge[g, cg1] = edge_jk, edge
-        side_corner[edge, 0], side_corner[edge, 1] = cf1, cg1
-        slot = np.where((side_face[edge_il, 0] == g) & (side_corner[edge_il, 0] == cg1), 0, 1)
-        side_face[edge_il, slot], side_corner[edge_il, slot] = f, cf
-        slot = np.where((side_face[edge_jk, 0] == f) & (side_corner[edge_jk, 0] == cf1), 0, 1)
-        side_face[edge_jk, slot], side_corner[edge_jk, slot] = g, cg
+        corner_at[f_cf2], corner_at[g_cg2] = vertex_l, vertex_k
+        edge_at[f_cf], edge_at[f_cf1] = edge_il, edge
+        edge_at[g_cg], edge_at[g_cg1] = edge_jk, edge
+        side_corner_at[side_0], side_corner_at[side_0 + 1] = cf1, cg1
+        # The side of edge il that was g's corner cg1 is now f's corner cf; that of jk, g's corner cg.
+        slot = 2 * edge_il + ((side_face_at[2 * edge_il] != g) | (side_corner_at[2 * edge_il] != cg1))
+        side_face_at[slot], side_corner_at[slot] = f, cf
+        slot = 2 * edge_jk + ((side_face_at[2 * edge_jk] != f) | (side_corner_at[2 * edge_jk] != cf1))
+        side_face_at[slot], side_corner_at[slot] = g, cg
         # Only the flipped quads' edges, and the candidates that lost, can be non-Delaunay now.
-        touched = np.zeros(n_edges, dtype=bool)
-        touched[np.concatenate([candidates[~wins], edge, edge_jk, edge_ki, edge_il, edge_lj])] = True
-        active = np.flatnonzero(touched)
+        active = _sorted_unique(np.concatenate([candidates[~wins], edge, edge_jk, edge_ki, edge_il, edge_lj]))
     else:
         return None
 
@@ -227,6 +242,16 @@ def intrinsic_delaunay_laplacian(
     area = _cotangent(sides[:, 0], sides[:, 1], sides[:, 2])[1]
     mass = np.bincount(corner_vertex.ravel(), np.repeat(area / 3.0, 3), minlength=n)
     return L, mass
+
+
+def _sorted_unique(values: np.ndarray) -> np.ndarray:
+    """``np.unique`` of a 1-D integer array (non-empty), without its fixed cost of tens of microseconds,
+    which thousands of flip rounds of a few edges each would pay."""
+    values = np.sort(values)
+    keep = np.empty(len(values), dtype=bool)
+    keep[0] = True
+    np.not_equal(values[1:], values[:-1], out=keep[1:])
+    return values[keep]
 
 
 def _fans(corner_vertex: np.ndarray, face_edge: np.ndarray, side_face: np.ndarray, side_corner: np.ndarray) -> int:
