@@ -384,24 +384,12 @@ def test_multilevel_solver_matches_direct_on_unseen_mesh_families(bench_descript
 def test_benchmark_stage_timer_accounts_for_embed_and_restores_its_functions(bench_descriptors):
     """bench_descriptors' table "Where embed's time goes": every stage of the multilevel path is timed,
     the stages and the rest add up to embed's time, and embed's modules get their own functions back."""
-    import importlib
-
     mesh = bench_descriptors.cad_shaft(420)
     assert len(mesh.vertices) >= D.DIRECT_MAX_VERTICES  # multilevel under method="auto"
-    looked_up = [
-        (importlib.import_module(module), name) for _, module, names in bench_descriptors.STAGES for name in names
-    ]
-
-    def current() -> list[object]:
-        found = []
-        for module, name in looked_up:
-            owner, _, attribute = name.rpartition(".")
-            found.append(getattr(getattr(module, owner) if owner else module, attribute))
-        return found
-
-    before = current()
+    targets = bench_descriptors.stage_targets()
+    before = [getattr(owner, attribute) for _, owner, attribute in targets]
     spent = bench_descriptors.embed_stages(mesh, 3, True)
-    assert all(a is b for a, b in zip(current(), before, strict=True))
+    assert all(getattr(owner, attribute) is f for (_, owner, attribute), f in zip(targets, before, strict=True))
     stages = [stage for stage, _, _ in bench_descriptors.STAGES]
     assert all(spent.get(stage, 0.0) > 0 for stage in stages), spent
     assert sum(spent[stage] for stage in stages) + spent["other"] == pytest.approx(spent["total"])

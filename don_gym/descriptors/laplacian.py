@@ -233,7 +233,7 @@ def intrinsic_delaunay_laplacian(
 
     # Each edge once: its end points are the vertices at the other two corners of either face.
     face, corner = side_face[:, 0], side_corner[:, 0]
-    i, j = corner_vertex[face, (corner + 1) % 3], corner_vertex[face, (corner + 2) % 3]
+    i, j = corner_at[3 * face + following[corner]], corner_at[3 * face + preceding[corner]]
     # An edge flipped into a loop at one vertex adds equally to a diagonal entry and its row sum.
     rows, cols = np.concatenate([i, j]), np.concatenate([j, i])
     off = sp.csr_matrix((np.concatenate([-weights, -weights]), (rows, cols)), (n, n))
