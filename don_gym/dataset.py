@@ -60,7 +60,12 @@ IDENTITY_KEYS = {
     "seed": "--seed",
     "fuse_depth": "--no-fusion",
     "voxel_size_m": "voxel_size_m",
+    "backgrounds": "--backgrounds",
+    "distractors": "--distractors",
+    "lighting": "--lighting",
 }
+#: Values of identity settings that datasets written before the setting existed recorded implicitly.
+IDENTITY_DEFAULTS = {"backgrounds": "classic", "distractors": 0, "lighting": "fixed"}
 
 
 def scene_dir(root: str | Path, scene_index: int) -> Path:
@@ -89,10 +94,27 @@ def decode_depth_mm(depth_mm: np.ndarray) -> np.ndarray:
     return np.asarray(depth_mm, dtype=np.float32) / 1000.0
 
 
+def decode_png(data: bytes, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray | None:
+    """The pixels of PNG bytes ``data``; None if they do not decode. OpenCV's log is silenced meanwhile:
+    its warnings about a truncated or corrupt file would reach the user beside the caller's own error."""
+    if not data:
+        return None
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        return cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    finally:
+        cv2.utils.logging.setLogLevel(level)
+
+
 def _read_png(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
-    image = cv2.imread(str(path), flags)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise DatasetError(f"{path}: missing or unreadable image ({exc.strerror or exc})") from None
+    image = decode_png(data, flags)
     if image is None:
-        raise DatasetError(f"{path}: missing or unreadable image")
+        raise DatasetError(f"{path}: unreadable image (empty, truncated or not a PNG)")
     return image
 
 
@@ -223,6 +245,7 @@ def check_dataset_identity(
     info_path = Path(root) / DATASET_FILE
     check_dataset_info(existing, info_path)
     on_disk, asked = _to_jsonable(existing), _to_jsonable(wanted)
+    on_disk = {**IDENTITY_DEFAULTS, **on_disk}
     different = [k for k in IDENTITY_KEYS if on_disk.get(k) != asked.get(k)]
     details = [f"{k} ({IDENTITY_KEYS[k]}): {on_disk.get(k)!r} on disk, {asked.get(k)!r} asked" for k in different]
     signature = ShapeSignature.from_dict(wanted["object_signature"])
@@ -480,3 +503,10 @@ class DONDataset:
                 f"now ({', '.join(differences[:3])}: now vs recorded)"
             )
         return model
+
+
+def has_fused_depth(data: DONDataset) -> bool:
+    """Whether every scene of ``data`` has TSDF-fused depth and masks (a build without ``--no-fusion``)."""
+    return data.info.get("fuse_depth", True) is not False and all(
+        scene.metadata.get("fused_depth", True) is not False for scene in data.scenes
+    )

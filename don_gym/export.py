@@ -8,11 +8,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 import yaml
 
-from don_gym.dataset import DONDataset, frame_path
+from don_gym.dataset import DONDataset, decode_png, frame_path
 from don_gym.errors import DatasetError
 from don_gym.geometry import pose_from_transform
 from don_gym.io import write_bytes_atomic, write_png, write_text_atomic
@@ -26,7 +25,7 @@ def _checked_png(path: Path, shape: tuple[int, ...], dtype: type) -> tuple[bytes
         data = path.read_bytes()
     except FileNotFoundError:
         raise DatasetError(f"{path}: missing; the scene is damaged (rebuild it: delete the scene and resume)") from None
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
+    image = decode_png(data)
     if image is None:
         raise DatasetError(f"{path}: not a readable PNG (empty, truncated or corrupt); the scene is damaged")
     if image.shape != shape or image.dtype != dtype:

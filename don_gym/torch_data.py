@@ -18,7 +18,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from don_gym.augment import AugmentConfig, augment
 from don_gym.correspondences import Correspondences, camera_poses_differ, sample_correspondences
-from don_gym.dataset import DEPTH_SOURCES, DONDataset
+from don_gym.dataset import DEPTH_SOURCES, DONDataset, has_fused_depth
 from don_gym.errors import DatasetError, DonGymError
 from don_gym.render import TARGET_VARIANTS, default_edge_width_px, make_target, mask_background
 
@@ -164,6 +164,12 @@ class CorrespondencePairs(Dataset):
             raise DatasetError(f"depth source {depth_source!r} is unknown; expected one of {sorted(DEPTH_SOURCES)}")
         self.data = DONDataset(root)
         self.depth_kind, self.mask_kind = DEPTH_SOURCES[depth_source]
+        if self.depth_kind == "depth_fused" and not has_fused_depth(self.data):
+            raise DatasetError(
+                f"{self.data.root}: was built with --no-fusion, so it has no fused depth for the self-supervised "
+                "method's default depth source; rebuild it without --no-fusion, or train from the sensor depth "
+                "with --depth-source sensor"
+            )
         self.length = int(length)
         self.seed = int(seed)
         self.num_match_attempts = num_match_attempts

@@ -433,7 +433,10 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> T
         raise same_on_every_process(exc) from None
     if config.threads is not None:
         torch.set_num_threads(int(config.threads))
-    source = _open_source(config)
+    try:
+        source = _open_source(config)
+    except DonGymError as exc:
+        raise same_on_every_process(exc) from None  # the processes of a launch read the same dataset
     if device.type == "cuda":
         torch.cuda.set_device(device)
         torch.backends.cudnn.benchmark = True  # fixed crop sizes: pick the fastest kernels once

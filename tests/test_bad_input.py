@@ -69,6 +69,7 @@ EVAL = ("evaluate", "--data", "{data}", "--no-progress")
 GRASP = ("benchmark", "grasp", "--no-progress", "--workers", "1", "--image-size", "64x48")
 BUILD = ("build-dataset", "--out", "{tmp}/new_data")
 TRAIN = ("train", "--method", "supervised", "--data", "{data}", "--crop", "none")
+SELF_SUPERVISED = ("train", "--method", "self-supervised", "--data", "{data}")
 EVAL_WORK = "don_gym.evaluation:evaluate_tracking"
 GRASP_WORK = "don_gym.grasp_benchmark:run_grasp_benchmark"
 EMBED_WORK = "don_gym.descriptors:embed"
@@ -185,6 +186,9 @@ CLI_CASES: dict[str, Cli] = {
         *TRAIN, "--out", "{tmp}/run", "--arch", "resnet18", "--pretrained", "{tmp}/imagenet.pt", says="imagenet.pt"
     ),
     "train --out an existing file": cli(*TRAIN, "--out", "{file}", says="file.txt", before_work="don_gym.train:train"),
+    "train self-supervised on data built with --no-fusion": cli(
+        *SELF_SUPERVISED, "--out", "{tmp}/run", says="--no-fusion", before_work="don_gym.train:_train"
+    ),
     "train resume from a corrupt train_state.pt": cli(
         *TRAIN, "--out", "{corrupt_run}", "--steps", "2", "--resume", says="train_state.pt"
     ),
@@ -430,6 +434,21 @@ def test_a_damaged_train_state_is_a_short_line_that_says_what_to_do(workspace, c
     assert "train_state.pt: cannot be read, the file is damaged" in line and "corrupt_run" in line, line
     assert "delete it" in line and "new --out" in line, line
     assert "weights_only" not in line and len(line) < 400, line  # PyTorch's paragraph about it is left out
+
+
+def test_self_supervised_on_data_without_fusion_says_how_and_trains_from_sensor_depth(workspace, capfd) -> None:
+    """The dataset fixture is built with --no-fusion. Captured at the file descriptors: OpenCV writes its
+    warnings (a PNG it cannot open) there, past Python's sys.stderr."""
+    argv = ["train", "--method", "self-supervised", "--data", str(workspace.data), "--crop", "none", "--threads", "1"]
+    code = main([*argv, "--out", str(workspace.tmp / "fused")])
+    line = one_error_line(code, capfd.readouterr().err)
+    assert str(workspace.data) in line and "rebuild it without --no-fusion" in line, line
+    assert "--depth-source sensor" in line, line
+    assert not (workspace.tmp / "fused").exists()
+    assert main([*argv, "--out", str(workspace.tmp / "sensor"), "--steps", "1", "--depth-source", "sensor"]) == 0
+    captured = capfd.readouterr()
+    assert "model.safetensors: 1 steps" in captured.out
+    assert "WARN" not in captured.err and "Warning" not in captured.err, captured.err
 
 
 @pytest.fixture(scope="module")
