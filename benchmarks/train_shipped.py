@@ -1,7 +1,7 @@
 """Reproduce the networks shipped in don_gym/shipped from scratch, and record the run.
 
-For each object (toolcap, shaft): build a dataset (640x480, d435 sensor, seed 0; 16 scenes of the toolcap,
-32 of the shaft), train one network per method (``resnet-lite``, ``resnet-lite-fine`` for supervised-mask;
+For each object (toolcap, shaft): build a dataset (640x480, d435 sensor, seed 0; 64 scenes of the toolcap,
+128 of the shaft, 6 frames each, wide backdrops, 4 distractors, random light), train one network per method (``resnet-lite``, ``resnet-lite-fine`` for supervised-mask;
 object-centred crops: 128x128 for the toolcap, 256x192 for the shaft; fixed seed), copy its final weights to
 ``don_gym/shipped/<object>/<method>.safetensors`` and record its training time, images/s and final loss in
 benchmarks/RESULTS.md, one section per object (``shipped-<object>``). Each row names the scenes, steps and
@@ -47,9 +47,12 @@ from don_gym.zoo import SHIPPED_DIR  # noqa: E402
 OBJECTS = ("toolcap", "shaft")
 METHODS = ("supervised-edge", "supervised-mask", "self-supervised")
 CROPS = {"toolcap": (128, 128), "shaft": (256, 192)}
-# The shaft's supervised networks trained on 16 scenes misread one end in a few unseen views (p99 of the
-# 3D error ~100 mm on held-out scenes); on 32 scenes p99 is ~20 mm. The toolcap's gained nothing from 32.
-SCENES = {"toolcap": 16, "shaft": 32}
+# Many scenes of few frames each, with wide backdrops, distractors and random light (docs/background.md,
+# "Training data"): networks trained on 16-32 scenes of 24 frames on the classic backdrops had a long tail of
+# matches on unseen high-contrast backgrounds. Same frame count as before: toolcap 384, shaft 768.
+SCENES = {"toolcap": 64, "shaft": 128}
+FRAMES = 6
+VARIETY = {"backgrounds": "wide", "distractors": 4, "lighting": "random"}
 # The supervised-mask networks' background channel turns the stride-8 blend of part and background a few pixels
 # inside the silhouette into matches off the part (p99 of the shaft's 3D error 246 mm with resnet-lite); the
 # decoder of resnet-lite-fine resolves the silhouette at stride 2.
@@ -89,7 +92,10 @@ def main() -> None:
     parser.add_argument(
         "--scenes", type=int, default=None, help="scenes of each object's dataset (default: per object, see SCENES)"
     )
-    parser.add_argument("--frames", type=int, default=24)
+    parser.add_argument("--frames", type=int, default=FRAMES, help="camera frames per scene")
+    parser.add_argument("--backgrounds", choices=("classic", "wide"), default=VARIETY["backgrounds"])
+    parser.add_argument("--distractors", type=int, default=VARIETY["distractors"])
+    parser.add_argument("--lighting", choices=("fixed", "random"), default=VARIETY["lighting"])
     # 640x480 rather than 320x240: at the env's observation pose (0.45 m above the table) the toolcap spans
     # about 30 px at 320x240, four cells of the network's output stride 8, too few to tell its flange end
     # from its open end; at 640x480 it spans about 60 px.
@@ -138,6 +144,9 @@ def main() -> None:
             frames_per_scene=args.frames,
             image_size=args.size,
             sensor="d435",
+            backgrounds=args.backgrounds,
+            distractors=args.distractors,
+            lighting=args.lighting,
         )
         check_runs_match(work, object_name, args.methods, scenes[object_name])
         start = time.perf_counter()
@@ -191,7 +200,7 @@ def main() -> None:
             key=lambda row: METHODS.index(row["method"]) if row["method"] in METHODS else len(METHODS),
         )
         body = f"""Datasets: the table's scenes x {args.frames} frames, {width}x{height}, sensor `d435`, TinyRenderer,
-seed 0. Training: the row's network arch, batch {args.batch_size} (images, or image pairs for self-supervised),
+seed 0, backdrops `{args.backgrounds}`, {args.distractors} distractors, lighting `{args.lighting}`. Training: the row's network arch, batch {args.batch_size} (images, or image pairs for self-supervised),
 {crop_width}x{crop_height} object-centred crops, Adam lr 1e-3 x0.9 every 250 steps, seed 0, {args.threads} torch
 thread(s), {args.workers} loader worker(s). Final loss = mean of the last 5% of steps (the two methods' losses
 are on different scales and not comparable with each other). Minutes and images/s add up every session of a

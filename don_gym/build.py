@@ -75,6 +75,9 @@ class DatasetConfig:
     symmetric: bool = True
     fuse_depth: bool = True
     voxel_size_m: float = 0.002
+    backgrounds: str = "classic"
+    distractors: int = 0
+    lighting: str = "fixed"
 
     def validate(self) -> None:
         """DatasetError naming the first unusable setting: all that needs neither the mesh, the disk nor
@@ -101,6 +104,16 @@ class DatasetConfig:
                 raise DatasetError(f"{name}={value!r}: expected True or False")
         if not (_is_number(self.voxel_size_m) and 0 < self.voxel_size_m < 0.1):
             raise DatasetError(f"voxel_size_m={self.voxel_size_m!r}: expected a voxel edge in metres, in (0, 0.1)")
+        from don_gym.sim.backdrop import BACKDROP_SETS
+        from don_gym.sim.recorder import LIGHTING_MODES
+
+        if self.backgrounds not in BACKDROP_SETS:
+            raise DatasetError(
+                f"backgrounds={self.backgrounds!r} (--backgrounds): expected one of {list(BACKDROP_SETS)}"
+            )
+        _check_int("distractors", self.distractors, "--distractors", minimum=0)
+        if self.lighting not in LIGHTING_MODES:
+            raise DatasetError(f"lighting={self.lighting!r} (--lighting): expected one of {list(LIGHTING_MODES)}")
         scale = self.object_scale
         if scale is not None and not (_is_number(scale) and scale > 0):
             raise DatasetError(f"object_scale={scale!r} (--object-scale): expected a positive, finite factor")
@@ -411,7 +424,15 @@ class SceneWriter:
         self.field = field
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # an EGL fallback is refused just below
-            self.recorder = SceneRecorder(self.model, config.image_size, sensor=config.sensor, renderer=config.renderer)
+            self.recorder = SceneRecorder(
+                self.model,
+                config.image_size,
+                sensor=config.sensor,
+                renderer=config.renderer,
+                backgrounds=config.backgrounds,
+                distractors=config.distractors,
+                lighting=config.lighting,
+            )
         try:
             _check_renderer_in_use(self.recorder.renderer, config.renderer)
         except DatasetError:

@@ -39,6 +39,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--dim", type=int, default=3, help="descriptor dimension D")
     parser.add_argument("--no-symmetry", action="store_true", help="plain Laplacian Eigenmaps (no GISIF merging)")
     parser.add_argument("--no-fusion", action="store_true", help="skip TSDF depth fusion (supervised data only)")
+    parser.add_argument(
+        "--backgrounds",
+        default="classic",
+        choices=["classic", "wide"],
+        help="backdrop texture families on the table and floor: classic (noise, stripes, checks) or wide (nine "
+        "families, docs/background.md)",
+    )
+    parser.add_argument(
+        "--distractors", type=int, default=0, help="coloured primitives placed on the table around the object per scene"
+    )
+    parser.add_argument(
+        "--lighting", default="fixed", choices=["fixed", "random"], help="one fixed light, or a light drawn per scene"
+    )
     parser.add_argument("--seed", type=int, default=0, help="base seed; scene i uses a seed derived from (seed, i)")
     parser.add_argument("--workers", type=int, default=1, help="worker processes, one PyBullet client each")
     parser.add_argument(
@@ -70,6 +83,9 @@ def run(args: argparse.Namespace) -> int:
         descriptor_dim=args.dim,
         symmetric=not args.no_symmetry,
         fuse_depth=not args.no_fusion,
+        backgrounds=args.backgrounds,
+        distractors=args.distractors,
+        lighting=args.lighting,
     )
     shard = parse_shard(args.shard)
     try:

@@ -7,6 +7,9 @@ pixels for identical inputs.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
 import numpy as np
 import pybullet as p
 from scipy.spatial.transform import Rotation
@@ -34,6 +37,47 @@ _PRINCIPAL_POINT_OFFSET_PX = {"tiny": (0.0, 1.0), "egl": (0.5, 0.5)}
 
 # Fixed light so that renders do not depend on PyBullet's defaults changing between versions.
 _LIGHT_DIRECTION = (0.4, -0.3, 1.0)
+
+
+@dataclass(frozen=True)
+class Lighting:
+    """The renderer's one directional light: ``direction_world`` points from the scene towards the light
+    (world frame, any length), ``colour_rgb`` in [0, 1], the Phong coefficients of ambient, diffuse and
+    specular light, and whether shadows are cast. :func:`render_camera` without a lighting uses
+    :data:`_LIGHT_DIRECTION` and PyBullet's default coefficients, as every default don_gym render does."""
+
+    direction_world: tuple[float, float, float] = _LIGHT_DIRECTION
+    colour_rgb: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    ambient: float = 0.6
+    diffuse: float = 0.35
+    specular: float = 0.05
+    shadow: bool = False
+
+    def camera_image_arguments(self) -> dict[str, Any]:
+        """Keyword arguments of PyBullet's ``getCameraImage`` for this light."""
+        return {
+            "lightDirection": [float(v) for v in self.direction_world],
+            "lightColor": [float(v) for v in self.colour_rgb],
+            "lightAmbientCoeff": float(self.ambient),
+            "lightDiffuseCoeff": float(self.diffuse),
+            "lightSpecularCoeff": float(self.specular),
+            "shadow": int(self.shadow),
+        }
+
+
+def random_lighting(rng: np.random.Generator) -> Lighting:
+    """A light from any azimuth, 25-90 degrees above the horizon, slightly tinted, dim to bright, with
+    shadows half of the time: the spread of a workshop's lamps and windows over a day."""
+    azimuth, elevation = rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(25, 90))
+    direction = (np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation))
+    return Lighting(
+        direction_world=tuple(float(v) for v in direction),
+        colour_rgb=tuple(float(v) for v in rng.uniform(0.8, 1.0, size=3)),
+        ambient=float(rng.uniform(0.3, 0.8)),
+        diffuse=float(rng.uniform(0.2, 0.7)),
+        specular=float(rng.uniform(0.0, 0.5)),
+        shadow=bool(rng.uniform() < 0.5),
+    )
 
 
 def look_at_camera_pose(eye_world: np.ndarray, target_world: np.ndarray, roll_rad: float = 0.0) -> np.ndarray:
@@ -116,6 +160,7 @@ def render_camera(
     near_m: float = 0.05,
     far_m: float = 3.0,
     renderer: str = "tiny",
+    lighting: Lighting | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Render RGB, ideal metric depth and segmentation from a pinhole camera.
 
@@ -128,6 +173,7 @@ def render_camera(
         T_world_camera: (4, 4) OpenCV camera pose (x right, y down, z forward) in the world.
         near_m, far_m: clip planes in metres; surfaces beyond ``far_m`` read as depth 0.
         renderer: ``"tiny"`` or ``"egl"``.
+        lighting: the light (:class:`Lighting`); None, the fixed default light.
 
     Returns:
         ``rgb`` (H, W, 3) uint8, ``depth_m`` (H, W) float32 z-depth along the optical axis in
@@ -142,8 +188,11 @@ def render_camera(
         H,
         viewMatrix=_gl_list(view_matrix_gl(T_world_camera)),
         projectionMatrix=_gl_list(projection_matrix_gl(intrinsics, near_m, far_m, renderer)),
-        lightDirection=_LIGHT_DIRECTION,
-        shadow=0,
+        **(
+            lighting.camera_image_arguments()
+            if lighting is not None
+            else {"lightDirection": _LIGHT_DIRECTION, "shadow": 0}
+        ),
         flags=p.ER_SEGMENTATION_MASK_OBJECT_AND_LINKINDEX,
         renderer=p.ER_BULLET_HARDWARE_OPENGL if renderer == "egl" else p.ER_TINY_RENDERER,
     )

@@ -5,26 +5,23 @@ poses, with RGB, sensor and ideal depth, object mask and camera poses per frame.
 
 from __future__ import annotations
 
-import tempfile
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
-import cv2
 import numpy as np
-import pybullet as p
 from scipy.spatial.transform import Rotation
 from scipy.stats import qmc
 
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics, invert_transform, rotation_angle_rad
-from don_gym.io import write_png
 from don_gym.objects import ObjectModel
+from don_gym.sim.backdrop import Backdrop, check_backdrop_set
 from don_gym.sim.bullet import Bullet
-from don_gym.sim.camera import body_mask, look_at_camera_pose, render_camera, specular_map
+from don_gym.sim.camera import body_mask, look_at_camera_pose, random_lighting, render_camera, specular_map
+from don_gym.sim.distractors import Distractors
 from don_gym.sim.robot import ARM_HOME_RAD, ARM_JOINTS, ARM_LOWER_RAD, ARM_UPPER_RAD, HAND_LINK, T_HAND_CAMERA, Panda
 from don_gym.sim.sensor import get_sensor, sample_calibration_error, simulate_depth
-from don_gym.sim.task import TABLE_BOUNDS_M, TABLE_TOP_Z_M, PickPlaceTask
+from don_gym.sim.task import TABLE_TOP_Z_M, PickPlaceTask
 
 #: Ranges of the quasi-random camera trajectory.
 DISTANCE_RANGE_M = (0.25, 0.55)
@@ -34,8 +31,10 @@ LOOK_AT_OFFSET_M = 0.06
 #: A pose is used when the arm reaches it within these tolerances.
 REACH_POSITION_TOLERANCE_M = 0.01
 REACH_ROTATION_TOLERANCE_RAD = np.deg2rad(5.0)
-#: Height of the floor under the table (m), seen past the table's edges.
-FLOOR_Z_M = -0.75
+#: Lighting modes of :class:`SceneRecorder`.
+LIGHTING_MODES = ("fixed", "random")
+#: Second random stream of a scene's seed: lighting and distractors.
+VARIETY_STREAM = 1
 #: Rounds of IK re-solving from the previous solution.
 IK_ROUNDS = 12
 
@@ -61,23 +60,10 @@ class RecordedScene:
     background: dict[str, Any] = field(default_factory=dict)
 
 
-def random_table_texture(rng: np.random.Generator, size_px: int = 128) -> np.ndarray:
-    """(size, size, 3) uint8 procedural texture: smooth noise, stripes or checks in two random colours."""
-    colour_a, colour_b = rng.uniform(0, 255, size=(2, 3))
-    kind = rng.choice(["noise", "stripes", "checks"])
-    v, u = np.mgrid[0:size_px, 0:size_px] / size_px
-    if kind == "noise":
-        cells = int(rng.integers(4, 24))
-        coarse = rng.uniform(0, 1, size=(cells, cells)).astype(np.float32)
-        weight = cv2.resize(coarse, (size_px, size_px), interpolation=cv2.INTER_CUBIC).clip(0, 1)
-    elif kind == "stripes":
-        angle = rng.uniform(0, np.pi)
-        weight = 0.5 + 0.5 * np.sin(2 * np.pi * rng.integers(3, 12) * (u * np.cos(angle) + v * np.sin(angle)))
-    else:
-        count = int(rng.integers(3, 10))
-        weight = ((np.floor(u * count) + np.floor(v * count)) % 2).astype(np.float64)
-    image = colour_a * (1 - weight[..., None]) + colour_b * weight[..., None]
-    return image.clip(0, 255).astype(np.uint8)
+def check_lighting_mode(lighting: str) -> str:
+    if lighting not in LIGHTING_MODES:
+        raise DonGymError(f"lighting={lighting!r}: expected one of {list(LIGHTING_MODES)}")
+    return lighting
 
 
 class SceneRecorder:
@@ -99,10 +85,27 @@ class SceneRecorder:
         image_size: (width, height) of the wrist camera in pixels (D435-like intrinsics).
         sensor: depth-sensor preset name or model for ``depth_m``.
         renderer: ``"tiny"`` or ``"egl"``.
+        backgrounds: the set of backdrop texture families (:data:`~don_gym.sim.backdrop.BACKDROP_SETS`):
+            ``"classic"`` (the three above) or ``"wide"`` (nine families).
+        distractors: coloured primitives placed on the table around the object per scene
+            (:class:`~don_gym.sim.distractors.Distractors`), never touching it.
+        lighting: ``"fixed"`` (the renderer's default light) or ``"random"`` (a light drawn per scene:
+            direction, tint, ambient, diffuse and specular strength, shadows; :func:`random_lighting`).
+
+    The default options record exactly what don_gym always recorded; the other options draw their
+    random numbers from a second generator of the scene's seed, so the object pose, camera poses and
+    sensor noise of a scene do not change with them.
     """
 
     def __init__(
-        self, model: ObjectModel, image_size: tuple[int, int] = (320, 240), sensor: str = "d435", renderer: str = "tiny"
+        self,
+        model: ObjectModel,
+        image_size: tuple[int, int] = (320, 240),
+        sensor: str = "d435",
+        renderer: str = "tiny",
+        backgrounds: str = "classic",
+        distractors: int = 0,
+        lighting: str = "fixed",
     ) -> None:
         self.model = model
         self.sensor = get_sensor(sensor)
@@ -110,53 +113,20 @@ class SceneRecorder:
         self.sim = Bullet(renderer=renderer)
         self.robot = Panda(self.sim)
         self.task = PickPlaceTask(self.sim, model)
-        self._texture_dir = tempfile.TemporaryDirectory(prefix="don_gym_textures_")
-        self._texture_count = 0
-        # Box shapes carry no texture coordinates, so textures go on visual-only quads laid
-        # over the table top (0.2 mm above it, so the object is never hidden) and on a floor.
-        x0, x1, y0, y1 = TABLE_BOUNDS_M
-        self.table_surface_id = self._add_quad("table_surface", (x0, x1, y0, y1), TABLE_TOP_Z_M + 0.0002, repeats=3)
-        self.floor_id = self._add_quad("floor", (-2.0, 3.0, -2.5, 2.5), FLOOR_Z_M, repeats=6)
+        self.backdrop_families = check_backdrop_set(backgrounds)
+        self.backdrop = Backdrop(self.sim)
+        self.distractors = Distractors(self.sim, distractors)
+        self.lighting_mode = check_lighting_mode(lighting)
         self.sim.take_snapshot()
 
     @property
     def renderer(self) -> str:
         return self.sim.renderer
 
-    def _add_quad(
-        self, name: str, bounds_xy: tuple[float, float, float, float], z: float, repeats: int, cells: int = 12
-    ) -> int:
-        """A textured horizontal rectangle, split into ``cells`` x ``cells`` squares because
-        TinyRenderer maps textures affinely per triangle (large triangles warp visibly)."""
-        x0, x1, y0, y1 = bounds_xy
-        t = np.linspace(0.0, 1.0, cells + 1)
-        tu, tv = np.meshgrid(t, t, indexing="xy")
-        vertices = np.stack([x0 + (x1 - x0) * tu, y0 + (y1 - y0) * tv, np.full_like(tu, z)], axis=-1).reshape(-1, 3)
-        uvs = (np.stack([tu, tv], axis=-1) * repeats).reshape(-1, 2)
-        corner = (np.arange(cells)[None, :] + (cells + 1) * np.arange(cells)[:, None]).ravel()
-        indices = np.stack([corner, corner + 1, corner + cells + 2, corner, corner + cells + 2, corner + cells + 1], 1)
-        visual = self.sim.client.createVisualShape(
-            p.GEOM_MESH,
-            vertices=vertices.tolist(),
-            indices=indices.ravel().tolist(),
-            uvs=uvs.tolist(),
-            normals=[[0.0, 0.0, 1.0]] * len(vertices),
-        )
-        return self.sim.add_body(name, self.sim.client.createMultiBody(baseMass=0.0, baseVisualShapeIndex=visual))
-
     def _randomise_background(self, rng: np.random.Generator) -> dict[str, Any]:
-        client = self.sim.client
-        settings: dict[str, Any] = {}
-        for name, body_id in (("table", self.table_surface_id), ("floor", self.floor_id)):
-            texture = random_table_texture(rng)
-            # PyBullet caches textures by file name: every texture needs a new one.
-            self._texture_count += 1
-            path = Path(self._texture_dir.name) / f"{name}_{self._texture_count}.png"
-            write_png(path, cv2.cvtColor(texture, cv2.COLOR_RGB2BGR))  # raises, not a silently missing texture
-            client.changeVisualShape(body_id, -1, rgbaColor=[1, 1, 1, 1], textureUniqueId=client.loadTexture(str(path)))
-            settings[f"{name}_texture_mean_rgb"] = texture.reshape(-1, 3).mean(axis=0).round(1)
+        settings = self.backdrop.randomise(rng, self.backdrop_families)
         settings["cradle_rgba"] = [*rng.uniform(0.1, 0.9, size=3), 1.0]
-        client.changeVisualShape(self.task.cradle_id, -1, rgbaColor=settings["cradle_rgba"])
+        self.sim.client.changeVisualShape(self.task.cradle_id, -1, rgbaColor=settings["cradle_rgba"])
         return settings
 
     def _reach(self, T_world_camera_wanted: np.ndarray) -> np.ndarray | None:
@@ -197,7 +167,7 @@ class SceneRecorder:
         if position_error > REACH_POSITION_TOLERANCE_M or rotation_error > REACH_ROTATION_TOLERANCE_RAD:
             return None
         client.performCollisionDetection()
-        for other in (self.task.table_id, self.task.cradle_id, self.task.part.body_id):
+        for other in (self.task.table_id, self.task.cradle_id, self.task.part.body_id, *self.distractors.body_ids):
             # The base and first link stand on the table by design.
             near = client.getClosestPoints(self.robot.body_id, other, distance=0.005)
             if any(point[3] > 1 for point in near):
@@ -226,6 +196,17 @@ class SceneRecorder:
         else:
             self.task.part.set_pose(np.asarray(T_world_object, dtype=np.float64))
         T_world_object = self.task.part.T_world_object
+        variety_rng = np.random.default_rng([seed, VARIETY_STREAM])
+        lighting = random_lighting(variety_rng) if self.lighting_mode == "random" else None
+        if lighting is not None:
+            background["lighting"] = asdict(lighting)
+        if self.distractors.count:
+            # Clear of the part's bounding sphere about its origin too: the self-supervised targets' fused
+            # object masks take everything within it for the part.
+            centre_m = self.task.part.center_of_mass_world
+            origin_offset_m = float(np.linalg.norm(T_world_object[:2, 3] - centre_m[:2]))
+            part_radius_m = 0.5 * float(np.linalg.norm(self.model.extents_m)) + origin_offset_m + 0.005
+            background["distractors"] = self.distractors.scatter(variety_rng, centre_m[:2], part_radius_m)
         scene = RecordedScene(self.intrinsics, T_world_object, TABLE_TOP_Z_M, background=background)
         T_camera_reported = sample_calibration_error(self.sensor, rng)
         halton = qmc.Halton(d=6, seed=rng)
@@ -253,7 +234,7 @@ class SceneRecorder:
             if T_world_camera is None:
                 continue
             rgb, depth_ideal, segmentation = render_camera(
-                self.sim.client, self.intrinsics, T_world_camera, renderer=self.sim.renderer
+                self.sim.client, self.intrinsics, T_world_camera, renderer=self.sim.renderer, lighting=lighting
             )
             specular = specular_map(segmentation, {part_id: self.model.material.specular})
             depth = simulate_depth(depth_ideal, specular, self.intrinsics, self.sensor, rng)
@@ -272,7 +253,7 @@ class SceneRecorder:
 
     def close(self) -> None:
         self.sim.close()
-        self._texture_dir.cleanup()
+        self.backdrop.close()
 
     def __enter__(self) -> SceneRecorder:
         return self
