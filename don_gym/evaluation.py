@@ -2,13 +2,16 @@
 Evaluation of Prediction Accuracy"), with the original DON metrics (Florence et al. 2018).
 
 The protocol is described in docs/background.md, section "Tracking evaluation protocol". The core
-functions take and return arrays; :func:`evaluate_tracking` runs the protocol over a dataset.
+functions take and return arrays; :func:`evaluate_tracking` runs the protocol over one dataset or
+several pooled ones, :meth:`TrackingResult.summary` gives every percentile with a 95% interval from
+resampling scenes (:mod:`don_gym.stats`), the share of far matches per scene and where the far matches
+land (:func:`attribute_matches`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -23,11 +26,68 @@ from don_gym.geometry import CameraIntrinsics, backproject_depth, invert_transfo
 from don_gym.keypoints import descriptor_distances, project_visible
 from don_gym.model import torch_device
 from don_gym.objects import ObjectModel
+from don_gym.stats import (
+    BOOTSTRAP_RESAMPLES,
+    DEFAULT_CONFIDENCE,
+    format_estimate,
+    percentile_interval,
+    resampled_means,
+    resampled_percentiles,
+    scene_resample_counts,
+)
 
 #: Percentiles reported for every metric.
 PERCENTILES: tuple[int, ...] = (50, 90, 99)
 #: Depths offered for the predicted 3D points, by their names in :data:`don_gym.dataset.DEPTH_SOURCES`.
 TRACKING_DEPTHS: tuple[str, ...] = ("ideal", "sensor")
+
+# --- which scenes may be used for what ------------------------------------------------------------
+# The one home of the evaluation seeds (docs/reproduction.md and CONTRIBUTING.md, "Development and test
+# seeds"). Figures the README and docs/reproduction.md quote come from TEST_SEEDS; choosing data,
+# architecture or training recipe uses DEVELOPMENT_SEEDS. Once a test result has been looked at to make
+# a decision, its seeds are spent: they move to SPENT_SEEDS and new test seeds are chosen.
+#: Held-out test scenes: ``SCENES_PER_SEED`` scenes of each, pooled (24 scenes per part).
+TEST_SEEDS: tuple[int, ...] = (4101, 4102, 4103)
+#: Development scenes, for every decision about data, networks and training.
+DEVELOPMENT_SEEDS: tuple[int, ...] = (3101, 3102, 3103)
+#: No longer held out. 1000: the earlier held-out set, used to choose the shipped networks' architecture,
+#: targets and training data.
+SPENT_SEEDS: tuple[int, ...] = (1000,)
+#: The shipped networks' training data (``benchmarks/train_shipped.py``).
+TRAINING_SEEDS: tuple[int, ...] = (0,)
+#: Dataset seeds of each evaluation split.
+SPLIT_SEEDS: dict[str, tuple[int, ...]] = {"test": TEST_SEEDS, "dev": DEVELOPMENT_SEEDS}
+#: Scenes per seed and frames per scene of an evaluation split: many short scenes, because the
+#: scene, not the match, is the unit a tail comes in (about 15 min for both parts on 2 cores).
+SCENES_PER_SEED = 8
+FRAMES_PER_SCENE = 12
+
+# --- tails ----------------------------------------------------------------------------------------
+#: A match further than this from the true point (3D error, metres) is *far*: off the part.
+FAR_MATCH_M = 0.100
+#: A 3D error has a long tail when its 99th percentile is at least this many times its median.
+LONG_TAIL_RATIO = 10.0
+#: Where a match lands (:func:`attribute_matches`), by index.
+MATCH_CATEGORIES: tuple[str, ...] = ("part, wrong end", "part, elsewhere", "table", "background", "robot/fixture")
+#: A matched point this close to the table plane lies on the table top (ideal depth is exact to a
+#: fraction of this; the textured quads lie 0.2 mm above the table).
+TABLE_TOLERANCE_M = 0.005
+#: Seed of the scene bootstrap, so that a summary is the same on every run.
+BOOTSTRAP_SEED = 0
+
+
+def seed_split(seed: int) -> str:
+    """The use a dataset seed is set aside for: ``"test"``, ``"dev"``, ``"spent"``, ``"training"`` or
+    ``"unlisted"`` (a seed no list names)."""
+    for name, seeds in (
+        ("test", TEST_SEEDS),
+        ("dev", DEVELOPMENT_SEEDS),
+        ("spent", SPENT_SEEDS),
+        ("training", TRAINING_SEEDS),
+    ):
+        if seed in seeds:
+            return name
+    return "unlisted"
 
 
 @dataclass(frozen=True)
@@ -200,6 +260,125 @@ def percentiles(values: np.ndarray, which: Sequence[int] = PERCENTILES) -> dict[
     return {**{f"p{p}": float(np.percentile(finite, p)) for p in which}, "mean": float(finite.mean())}
 
 
+def part_halves_axis(model: ObjectModel) -> tuple[np.ndarray, np.ndarray]:
+    """The line that splits a part into its two ends: ``(point, axis)`` (3,) each, object frame, metres.
+
+    Along the part's +axis (the symmetry axis of an axisymmetric part), through the middle of its
+    extent along that axis (not its centre of mass: the toolcap's flange would move the split
+    towards the flange end)."""
+    minus_end, plus_end = model.axis_endpoints()
+    return 0.5 * (minus_end + plus_end), np.asarray(model.plus_axis, dtype=np.float64)
+
+
+def attribute_matches(
+    matched_uv: np.ndarray,
+    true_points_world: np.ndarray,
+    object_mask: np.ndarray,
+    depth_ideal_m: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    T_world_camera: np.ndarray,
+    T_world_object: np.ndarray,
+    halves_point_object: np.ndarray,
+    halves_axis_object: np.ndarray,
+    table_height_m: float,
+    table_bounds_xy_m: tuple[float, float, float, float] | None = None,
+    table_tolerance_m: float = TABLE_TOLERANCE_M,
+) -> np.ndarray:
+    """Where each match of one frame lands: (N,) int8 index into :data:`MATCH_CATEGORIES`.
+
+    Args:
+        matched_uv: (N, 2) integer ``(u, v)`` of the best matches in this frame.
+        true_points_world: (N, 3) the true points (world, metres) the matches should have found.
+        object_mask: (H, W) bool, the part's pixels in this frame.
+        depth_ideal_m: (H, W) ideal (simulator) depth of this frame, 0 where nothing was hit.
+        intrinsics, T_world_camera: the frame's camera and its *true* pose.
+        T_world_object: the part's pose.
+        halves_point_object, halves_axis_object: the line splitting the part into its two ends, object
+            frame (:func:`part_halves_axis`).
+        table_height_m: z (world, up) of the table top.
+        table_bounds_xy_m: (x_min, x_max, y_min, y_max) of the table top, or None when nothing but the
+            table top lies on its plane in view (as in the recorded scenes, whose floor is far below).
+        table_tolerance_m: how close to the table plane a point counts as on it.
+
+    Categories, first that applies: on the part's mask and on the other side of the split from the
+    true point (``part, wrong end``), on the part otherwise (``part, elsewhere``); the matched
+    pixel's world point (ideal depth, true camera pose) within ``table_tolerance_m`` of the table
+    plane and inside its bounds (``table``); above the table (``robot/fixture``: arm, gripper, cradle,
+    distractor objects); no depth, below the table top or beside it (``background``: floor, beyond the
+    table).
+    """
+    uv = np.asarray(matched_uv, dtype=np.int64).reshape(-1, 2)
+    on_part = np.asarray(object_mask, dtype=bool)[uv[:, 1], uv[:, 0]]
+    points, has_depth = world_points_at(uv, depth_ideal_m, intrinsics, T_world_camera)
+    axis = np.asarray(halves_axis_object, dtype=np.float64)
+    axis = axis / np.linalg.norm(axis)
+    T_object_world = invert_transform(T_world_object)
+
+    def side(points_world: np.ndarray) -> np.ndarray:
+        local = transform_points(T_object_world, np.asarray(points_world, dtype=np.float64).reshape(-1, 3))
+        return np.sign((local - np.asarray(halves_point_object, dtype=np.float64)) @ axis)
+
+    with np.errstate(invalid="ignore"):
+        wrong_end = on_part & has_depth & (side(points) * side(true_points_world) < 0)
+        height = points[:, 2] - table_height_m
+        on_plane = has_depth & (np.abs(height) <= table_tolerance_m)
+        if table_bounds_xy_m is not None:
+            x0, x1, y0, y1 = table_bounds_xy_m
+            on_plane &= (points[:, 0] >= x0) & (points[:, 0] <= x1) & (points[:, 1] >= y0) & (points[:, 1] <= y1)
+        above = has_depth & (height > table_tolerance_m)
+    index = {name: np.int8(k) for k, name in enumerate(MATCH_CATEGORIES)}
+    category = np.full(len(uv), index["background"], dtype=np.int8)
+    category[above] = index["robot/fixture"]
+    category[on_plane] = index["table"]
+    category[on_part] = index["part, elsewhere"]
+    category[wrong_end] = index["part, wrong end"]
+    return category
+
+
+def long_tail_verdict(ratio_interval: Sequence[float], threshold: float = LONG_TAIL_RATIO) -> str:
+    """Verdict on a 3D error's tail from the interval of its p99 / median: ``"no long tail"`` only when
+    the whole interval lies below ``threshold``, ``"long tail"`` when it lies at or above it,
+    ``"not settled"`` when it straddles it (the sample cannot tell) and ``"-"`` without an interval."""
+    low, high = (float("nan"), float("nan")) if ratio_interval is None else map(float, ratio_interval)
+    if np.isnan(low) or np.isnan(high):
+        return "-"
+    if high < threshold:
+        return "no long tail"
+    if low >= threshold:
+        return "long tail"
+    return "not settled"
+
+
+def background_description(background: Mapping[str, Any] | None) -> str:
+    """One line for a scene's ``background`` entry of ``scene.json``: per surface its texture family (when
+    recorded) and mean colour, e.g. ``table checks (201, 40, 38), floor noise (90, 160, 150), cradle (...)``;
+    a recorded ``description`` as it is; ``"-"`` when absent."""
+    if not background:
+        return "-"
+    if isinstance(background.get("description"), str) and background["description"]:
+        return str(background["description"])
+
+    def colour(value: Any) -> str:
+        values = np.asarray(value, dtype=np.float64).ravel()[:3]
+        scale = 255.0 if values.size and values.max() <= 1.0 else 1.0  # rgba in [0, 1] as 0-255
+        return "(" + ", ".join(f"{v * scale:.0f}" for v in values) + ")"
+
+    parts, used = [], set()
+    for surface in ("table", "floor"):
+        family, mean = background.get(f"{surface}_texture_family"), background.get(f"{surface}_texture_mean_rgb")
+        if family is None and mean is None:
+            continue
+        used |= {f"{surface}_texture_family", f"{surface}_texture_mean_rgb"}
+        parts.append(
+            " ".join([surface, *([str(family)] if family else []), *([colour(mean)] if mean is not None else [])])
+        )
+    if background.get("cradle_rgba") is not None:
+        used.add("cradle_rgba")
+        parts.append(f"cradle {colour(background['cradle_rgba'])}")
+    parts += [f"{key} {value}" for key, value in background.items() if key not in used]
+    return ", ".join(parts)
+
+
 # --- descriptor sources ---------------------------------------------------------------------------
 
 
@@ -235,74 +414,194 @@ def _source_info(source: DescriptorSource) -> dict[str, Any]:
     return info
 
 
-# --- protocol over a dataset --------------------------------------------------------------------
+# --- protocol over datasets -----------------------------------------------------------------------
+
+
+def _interval_pair(bounds: np.ndarray) -> list[float] | None:
+    """``[low, high]`` for JSON, None when the interval is undefined."""
+    low, high = (float(b) for b in bounds)
+    return None if not (np.isfinite(low) and np.isfinite(high)) else [low, high]
 
 
 @dataclass
 class TrackingMatches:
     """All matches of one method, one entry per (scene, frame, reference point) with the point visible.
 
-    Arrays of equal length M: ``scene``, ``frame``, ``point`` (int), ``pixel_error_px``,
-    ``error_3d_m`` (NaN where the matched pixel has no depth), ``symmetric_error_m`` (NaN for
-    parts without a symmetry axis or without depth), ``fraction_closer``, ``depth_valid`` (bool).
-    ``reference_points`` counts the reference pixels chosen over all scenes.
+    Arrays of equal length M:
+
+    - where: ``scene_id`` (the scene's position in :attr:`TrackingResult.scenes`, the unit the
+      bootstrap resamples), ``dataset`` (position in :attr:`TrackingResult.datasets`), ``scene``
+      (position in that dataset), ``frame``, ``point`` (reference point of the scene);
+    - pixels: ``reference_frame``, ``reference_uv`` (M, 2) int, ``matched_uv`` (M, 2) int, ``true_uv``
+      (M, 2) float (the true projection in ``frame``);
+    - metrics: ``pixel_error_px``, ``error_3d_m`` (NaN where the matched pixel has no depth),
+      ``symmetric_error_m`` (NaN for parts without a symmetry axis or without depth),
+      ``fraction_closer``, ``depth_valid`` (bool);
+    - tails: ``error_3d_ideal_m``, the 3D error with the matched pixel's ideal depth (equal to
+      ``error_3d_m`` with ideal depth; with sensor depth it tells a far match the depth made from one the
+      descriptors made), ``category`` int8 index into :data:`MATCH_CATEGORIES` (:func:`attribute_matches`).
+
+    ``reference_points`` counts the reference pixels chosen over all scenes, ``scenes_evaluated`` the scenes.
     """
 
+    scene_id: np.ndarray
+    dataset: np.ndarray
     scene: np.ndarray
     frame: np.ndarray
     point: np.ndarray
+    reference_frame: np.ndarray
+    reference_uv: np.ndarray
+    matched_uv: np.ndarray
+    true_uv: np.ndarray
     pixel_error_px: np.ndarray
     error_3d_m: np.ndarray
     symmetric_error_m: np.ndarray
     fraction_closer: np.ndarray
     depth_valid: np.ndarray
+    error_3d_ideal_m: np.ndarray
+    category: np.ndarray
     reference_points: int = 0
+    scenes_evaluated: int = 0
 
-    def summary(self) -> dict[str, Any]:
+    @property
+    def far(self) -> np.ndarray:
+        """(M,) bool: 3D error above :data:`FAR_MATCH_M` (False without depth)."""
+        with np.errstate(invalid="ignore"):
+            return np.isfinite(self.error_3d_m) & (self.error_3d_m > FAR_MATCH_M)
+
+    def summary(
+        self,
+        resamples: int = BOOTSTRAP_RESAMPLES,
+        confidence: float = DEFAULT_CONFIDENCE,
+        seed: int = BOOTSTRAP_SEED,
+    ) -> dict[str, Any]:
+        """Counts, percentiles and their intervals (scene bootstrap, :mod:`don_gym.stats`), the tail (p99 /
+        median, share of far matches, verdict), far matches by category and per scene."""
         valid = self.depth_valid
+        n_scenes = max(int(self.scenes_evaluated), int(self.scene_id.max()) + 1 if len(self.scene_id) else 1)
+        # The same counts for every method of a result (same scenes, same seed): their intervals are paired.
+        counts = scene_resample_counts(n_scenes, resamples, seed)
+        metrics = {
+            "error_3d_mm": self.error_3d_m * 1000.0,
+            "error_3d_symmetric_mm": self.symmetric_error_m * 1000.0,
+            "pixel_error_px": self.pixel_error_px,
+            "fraction_closer": self.fraction_closer,
+        }
+        intervals: dict[str, dict[str, list[float] | None]] = {}
+        replicates_3d = np.full((len(counts), len(PERCENTILES)), np.nan)
+        for name, values in metrics.items():
+            replicates = resampled_percentiles(values, self.scene_id, counts, PERCENTILES)
+            if name == "error_3d_mm":
+                replicates_3d = replicates
+            bounds = percentile_interval(
+                np.column_stack([replicates, resampled_means(values, self.scene_id, counts)]), confidence
+            )
+            keys = [*(f"p{p}" for p in PERCENTILES), "mean"]
+            intervals[name] = {key: _interval_pair(b) for key, b in zip(keys, bounds, strict=True)}
+        p50, p99 = percentiles(metrics["error_3d_mm"])["p50"], percentiles(metrics["error_3d_mm"])["p99"]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio_replicates = replicates_3d[:, PERCENTILES.index(99)] / replicates_3d[:, PERCENTILES.index(50)]
+        ratio_interval = _interval_pair(percentile_interval(ratio_replicates, confidence))
+        far = self.far
+        far_or_nan = np.where(valid & np.isfinite(self.error_3d_m), far.astype(np.float64), np.nan)
+        with np.errstate(invalid="ignore"):
+            from_depth = far & (self.error_3d_ideal_m <= FAR_MATCH_M)
+        per_scene_visible = np.bincount(self.scene_id, minlength=n_scenes)
+        per_scene_depth = np.bincount(self.scene_id[valid], minlength=n_scenes)
+        per_scene_far = np.bincount(self.scene_id[far], minlength=n_scenes)
         return {
             "counts": {
                 "reference_points": int(self.reference_points),
-                "visible_matches": int(len(self.scene)),
+                "visible_matches": int(len(self.scene_id)),
                 "matches_with_depth": int(valid.sum()),
                 "matches_without_depth": int((~valid).sum()),
             },
-            "error_3d_mm": percentiles(self.error_3d_m * 1000.0),
-            "error_3d_symmetric_mm": percentiles(self.symmetric_error_m * 1000.0),
-            "pixel_error_px": percentiles(self.pixel_error_px),
-            "fraction_closer": percentiles(self.fraction_closer),
+            **{name: percentiles(values) for name, values in metrics.items()},
             "fraction_3d_error_below": {
                 f"{int(mm)}mm": (float(np.mean(self.error_3d_m[valid] < mm / 1000.0)) if valid.any() else None)
                 for mm in (2.0, 5.0, 10.0, 20.0)
             },
+            "intervals": intervals,
+            "tail": {
+                "p99_over_p50": None if p50 is None or p99 is None or p50 <= 0 else p99 / p50,
+                "p99_over_p50_interval": ratio_interval,
+                "verdict": long_tail_verdict(ratio_interval if ratio_interval is not None else (np.nan, np.nan)),
+                "far_matches": int(far.sum()),
+                "far_share": float(far.sum() / valid.sum()) if valid.any() else None,
+                "far_share_interval": _interval_pair(
+                    percentile_interval(resampled_means(far_or_nan, self.scene_id, counts), confidence)
+                ),
+            },
+            "far_by_category": {
+                name: {
+                    "matches": int((far & (self.category == k)).sum()),
+                    "far_only_from_depth": int((from_depth & (self.category == k)).sum()),
+                }
+                for k, name in enumerate(MATCH_CATEGORIES)
+            },
+            "per_scene": [
+                {"visible_matches": int(v), "matches_with_depth": int(d), "far_matches": int(f)}
+                for v, d, f in zip(per_scene_visible, per_scene_depth, per_scene_far, strict=True)
+            ],
         }
 
 
 @dataclass
 class TrackingResult:
-    dataset: str
+    """The matches of every method on the scenes of one or more pooled datasets.
+
+    ``datasets``: the datasets' directories; ``dataset_infos``: their ``dataset.json``; ``scenes``: one
+    entry per evaluated scene, in the order of ``TrackingMatches.scene_id``: ``dataset`` (position),
+    ``dataset_seed``, ``scene`` (position in its dataset), ``scene_index``, ``scene_seed``, ``frames``,
+    ``background`` (:func:`background_description`).
+    """
+
+    datasets: list[str]
     config: TrackingConfig
     matches: dict[str, TrackingMatches]
     sources: dict[str, dict[str, Any]]
-    dataset_info: dict[str, Any]
+    dataset_infos: list[dict[str, Any]]
+    scenes: list[dict[str, Any]]
+    _summary: dict[str, Any] | None = field(default=None, init=False, repr=False, compare=False)
 
     def summary(self) -> dict[str, Any]:
-        info = self.dataset_info
-        return {
+        """Everything reported, as JSON-ready data (computed once: the bootstrap takes a moment)."""
+        if self._summary is not None:
+            return self._summary
+        infos = self.dataset_infos
+        seeds = [info.get("seed") for info in infos]
+        splits = [seed_split(seed) if isinstance(seed, int) else "unlisted" for seed in seeds]
+
+        def common(key: str) -> Any:
+            values = [info.get(key) for info in infos]
+            return values[0] if all(v == values[0] for v in values) else values
+
+        self._summary = {
             "protocol": "kupcsik2021-tracking",
-            "dataset": self.dataset,
-            "object": info.get("object"),
-            "scenes": info.get("scenes_evaluated"),
-            "frames_per_scene": info.get("frames_per_scene"),
-            "image_size": info.get("image_size"),
-            "dataset_sensor": info.get("sensor"),
-            "dataset_seed": info.get("seed"),
+            "datasets": list(self.datasets),
+            "dataset_seeds": seeds,
+            "split": splits[0] if len(set(splits)) == 1 else "mixed",
+            "object": infos[0].get("object") if infos else None,
+            "scenes": len(self.scenes),
+            "frames_per_scene": common("frames_per_scene"),
+            "image_size": common("image_size"),
+            "dataset_sensor": common("sensor"),
             "config": asdict(self.config),
             "percentiles": list(PERCENTILES),
+            "bootstrap": {
+                "unit": "scene",
+                "resamples": BOOTSTRAP_RESAMPLES,
+                "confidence": DEFAULT_CONFIDENCE,
+                "seed": BOOTSTRAP_SEED,
+            },
+            "far_match_mm": FAR_MATCH_M * 1000.0,
+            "long_tail_ratio": LONG_TAIL_RATIO,
+            "scene_list": [dict(scene) for scene in self.scenes],
             "methods": {
                 name: {"source": self.sources[name], **matches.summary()} for name, matches in self.matches.items()
             },
         }
+        return self._summary
 
 
 @dataclass
@@ -311,15 +610,15 @@ class _SceneReference:
     uv: np.ndarray  # (N, 2) reference pixels in the reference frame
     points_world: np.ndarray  # (N, 3) ground truth
     projections: list[tuple[np.ndarray, np.ndarray]]  # per frame: (uv (N, 2), visible (N,))
+    depth_ideal: list[np.ndarray]  # per frame
+    masks: list[np.ndarray]  # per frame, the part's pixels
 
 
 def _scene_reference(dataset: DONDataset, scene: int, config: TrackingConfig) -> _SceneReference:
     record: SceneRecord = dataset.scenes[scene]
     depth_ideal = [dataset.image(scene, f, "depth_ideal") for f in range(record.num_frames)]
-    usable = [
-        usable_reference_mask(dataset.image(scene, f, "mask"), depth_ideal[f], config.erode_px)
-        for f in range(record.num_frames)
-    ]
+    masks = [np.asarray(dataset.image(scene, f, "mask"), dtype=bool) for f in range(record.num_frames)]
+    usable = [usable_reference_mask(masks[f], depth_ideal[f], config.erode_px) for f in range(record.num_frames)]
     frame = int(np.argmax([u.sum() for u in usable]))
     rng = np.random.default_rng(np.random.SeedSequence([config.seed, record.index]))
     uv = select_reference_pixels(usable[frame], config.points_per_scene, rng)
@@ -330,7 +629,7 @@ def _scene_reference(dataset: DONDataset, scene: int, config: TrackingConfig) ->
         )
         for f in range(record.num_frames)
     ]
-    return _SceneReference(frame, uv, points, projections)
+    return _SceneReference(frame, uv, points, projections, depth_ideal, masks)
 
 
 def _network_images(
@@ -345,19 +644,33 @@ def _network_images(
     return images
 
 
+def _open_datasets(datasets: DONDataset | str | Path | Sequence[DONDataset | str | Path]) -> list[DONDataset]:
+    """The datasets to pool, opened, each once, all of one part."""
+    items = [datasets] if isinstance(datasets, (DONDataset, str, Path)) else list(datasets)
+    if not items:
+        raise DonGymError("no dataset to evaluate; give one or more dataset directories")
+    opened = [d if isinstance(d, DONDataset) else DONDataset(d) for d in items]
+    roots = [d.root.resolve() for d in opened]
+    if len(set(roots)) != len(roots):
+        raise DonGymError(f"datasets {[str(d.root) for d in opened]}: each dataset may be given once")
+    return opened
+
+
 def evaluate_tracking(
-    dataset: DONDataset | str | Path,
+    dataset: DONDataset | str | Path | Sequence[DONDataset | str | Path],
     methods: Sequence[str] | Mapping[str, str | DescriptorSource],
     config: TrackingConfig = TrackingConfig(),
     progress: bool = True,
     device: str = "cpu",
     batch_size: int | None = None,
 ) -> TrackingResult:
-    """Run the tracking protocol for each method on every scene of ``dataset``.
+    """Run the tracking protocol for each method on every scene of ``dataset`` (one, or several whose
+    scenes are pooled), with ``config.depth`` for the predicted points.
 
     The protocol is that of docs/background.md, section "Tracking evaluation protocol". Evaluate on
-    scenes the networks were not trained on: build a separate dataset with another seed
-    (``benchmarks/bench_grasp.py`` uses seed 1000, the shipped networks were trained on seed 0).
+    scenes the networks were not trained on and no decision has used: datasets of the seeds of
+    :data:`SPLIT_SEEDS` (``benchmarks/bench_grasp.py`` pools :data:`SCENES_PER_SEED` scenes of each of the
+    :data:`TEST_SEEDS`; the shipped networks were trained on seed 0).
 
     ``methods``: model references, loaded by
     :func:`don_gym.descriptor_sources.load_descriptor_source` exactly as the env wrappers and
@@ -365,39 +678,98 @@ def evaluate_tracking(
     true poses, the upper bound), shipped network names or checkpoint paths (checked to describe
     the dataset's object); or a mapping from a label to a reference or a ready
     :class:`~don_gym.descriptor_sources.DescriptorSource`. All sources are loaded and checked against the
-    dataset's object before any work.
+    datasets' object before any work.
 
     Networks run on ``device`` (:func:`~don_gym.model.torch_device`: ``"cpu"``, ``"cuda"``, ...), on
     ``batch_size`` frames of a scene at a time (None: 8 on a GPU, one frame at a time on the CPU); the
     results differ from one frame at a time on the CPU only by float rounding.
     """
     config.validate()
+    return evaluate_tracking_depths(dataset, methods, config, (config.depth,), progress, device, batch_size)[
+        config.depth
+    ]
+
+
+def evaluate_tracking_depths(
+    dataset: DONDataset | str | Path | Sequence[DONDataset | str | Path],
+    methods: Sequence[str] | Mapping[str, str | DescriptorSource],
+    config: TrackingConfig = TrackingConfig(),
+    depths: Sequence[str] = TRACKING_DEPTHS,
+    progress: bool = True,
+    device: str = "cpu",
+    batch_size: int | None = None,
+) -> dict[str, TrackingResult]:
+    """:func:`evaluate_tracking` for several depths of the predicted points in one pass: ``{depth: result}``,
+    each result's config with that depth. The matches depend only on the descriptors, so each method
+    runs once per frame whatever the number of depths."""
+    config.validate()
+    depths = tuple(dict.fromkeys(depths))
+    if not depths or any(d not in TRACKING_DEPTHS for d in depths):
+        raise DonGymError(f"depths={list(depths)!r}: expected one or more of {list(TRACKING_DEPTHS)}")
     run_on = torch_device(device)
     if batch_size is not None and (isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1):
         raise DonGymError(f"batch_size={batch_size!r}: expected an integer >= 1 or None")
     batch = batch_size if batch_size is not None else (1 if run_on.type == "cpu" else 8)
-    data = dataset if isinstance(dataset, DONDataset) else DONDataset(dataset)
+    datasets = _open_datasets(dataset)
     if not methods:
         raise DonGymError("no methods to evaluate; give 'oracle' and/or network names or checkpoint paths")
     labelled = dict(methods) if isinstance(methods, Mapping) else {str(m): m for m in methods}
     if not isinstance(methods, Mapping) and len(labelled) != len(methods):
         raise DonGymError(f"methods {list(methods)}: each method may be given once")
-    model = dataset_object(data)
+    model = dataset_object(datasets[0])
+    for other in datasets[1:]:
+        differences = model.shape_signature.differences(dataset_object(other).shape_signature)
+        if differences:
+            raise DonGymError(
+                f"datasets {datasets[0].root} and {other.root} show different parts ({'; '.join(differences)}); "
+                "pool only datasets of one part"
+            )
     sources = {name: load_descriptor_source(ref, model) for name, ref in labelled.items()}
     for source in sources.values():
         if isinstance(source, NetworkDescriptors):
             source.network.to(run_on)
     axis = model.symmetry_axis
-    scenes = list(range(len(data.scenes)))[: config.max_scenes]
-    depth_kind, _ = DEPTH_SOURCES[config.depth]
+    halves_point, halves_axis = part_halves_axis(model)
+    plan = [(d, s) for d, data in enumerate(datasets) for s in range(len(data.scenes))[: config.max_scenes]]
+    common_keys = (
+        "scene_id",
+        "dataset",
+        "scene",
+        "frame",
+        "point",
+        "reference_frame",
+        "reference_uv",
+        "matched_uv",
+        "true_uv",
+        "pixel_error_px",
+        "fraction_closer",
+        "error_3d_ideal_m",
+        "category",
+    )
+    depth_keys = ("error_3d_m", "symmetric_error_m", "depth_valid")
     collected: dict[str, list[dict[str, np.ndarray]]] = {name: [] for name in sources}
+    scenes: list[dict[str, Any]] = []
     reference_points = 0
-    total = len(sources) * sum(data.scenes[s].num_frames for s in scenes)
+    total = len(sources) * sum(datasets[d].scenes[s].num_frames for d, s in plan)
     with tqdm(total=total, unit="frame", desc="evaluate", disable=not progress) as bar:
-        for scene in scenes:
+        for scene_id, (d, scene) in enumerate(plan):
+            data = datasets[d]
             record = data.scenes[scene]
+            scenes.append(
+                {
+                    "dataset": d,
+                    "dataset_seed": data.info.get("seed"),
+                    "scene": scene,
+                    "scene_index": record.index,
+                    "scene_seed": record.metadata.get("seed"),
+                    "frames": record.num_frames,
+                    "background": background_description(record.metadata.get("background")),
+                }
+            )
             reference = _scene_reference(data, scene, config)
             reference_points += len(reference.uv)
+            table_height_m = float(record.metadata.get("table_height_m", 0.0))
+            depth_images: dict[str, dict[int, np.ndarray]] = {d_name: {} for d_name in depths}
             for name, source in sources.items():
                 batched: dict[int, np.ndarray] = {}
                 if batch > 1 and isinstance(source, NetworkDescriptors):
@@ -421,70 +793,298 @@ def evaluate_tracking(
                     if image is None:
                         image = source.descriptor_image(*frame_observation(data, scene, frame))
                     matches = match_descriptors(image, ref_descriptors[rows], np.rint(true_uv[rows]).astype(np.int64))
-                    depth = data.image(scene, frame, depth_kind)
-                    predicted, depth_valid = world_points_at(
-                        matches.uv, depth, record.intrinsics, record.T_world_camera[frame]
-                    )
                     truth = reference.points_world[rows]
-                    symmetric = (
-                        symmetric_distance(predicted, truth, record.T_world_object, model.center_of_mass, axis)
-                        if axis is not None
-                        else np.full(len(rows), np.nan)
+                    T_world_camera = record.T_world_camera[frame]
+                    ideal_points, _ = world_points_at(
+                        matches.uv, reference.depth_ideal[frame], record.intrinsics, T_world_camera
                     )
-                    collected[name].append(
-                        {
-                            "scene": np.full(len(rows), scene),
-                            "frame": np.full(len(rows), frame),
-                            "point": rows,
-                            "pixel_error_px": np.linalg.norm(matches.uv - true_uv[rows], axis=1),
-                            "error_3d_m": np.linalg.norm(predicted - truth, axis=1),
-                            "symmetric_error_m": symmetric,
-                            "fraction_closer": matches.fraction_closer,
-                            "depth_valid": depth_valid,
-                        }
-                    )
-    matches_by_method = {}
-    for name, parts in collected.items():
-        keys = ("scene", "frame", "point", "pixel_error_px", "error_3d_m", "symmetric_error_m", "fraction_closer")
-        arrays = {k: np.concatenate([p[k] for p in parts]) if parts else np.zeros(0) for k in keys}
-        valid = np.concatenate([p["depth_valid"] for p in parts]) if parts else np.zeros(0, dtype=bool)
-        matches_by_method[name] = TrackingMatches(**arrays, depth_valid=valid, reference_points=reference_points)
-    info = dict(data.info) | {"scenes_evaluated": len(scenes)}
+                    entry = {
+                        "scene_id": np.full(len(rows), scene_id),
+                        "dataset": np.full(len(rows), d),
+                        "scene": np.full(len(rows), scene),
+                        "frame": np.full(len(rows), frame),
+                        "point": rows,
+                        "reference_frame": np.full(len(rows), reference.frame),
+                        "reference_uv": reference.uv[rows],
+                        "matched_uv": matches.uv,
+                        "true_uv": true_uv[rows],
+                        "pixel_error_px": np.linalg.norm(matches.uv - true_uv[rows], axis=1),
+                        "fraction_closer": matches.fraction_closer,
+                        "error_3d_ideal_m": np.linalg.norm(ideal_points - truth, axis=1),
+                        "category": attribute_matches(
+                            matches.uv,
+                            truth,
+                            reference.masks[frame],
+                            reference.depth_ideal[frame],
+                            record.intrinsics,
+                            T_world_camera,
+                            record.T_world_object,
+                            halves_point,
+                            halves_axis,
+                            table_height_m,
+                            # The recorded scenes show nothing else on the table's plane (their floor lies
+                            # 0.75 m below), and the bounds live with PyBullet, which evaluation does not load.
+                            table_bounds_xy_m=None,
+                        ),
+                    }
+                    for depth_name in depths:
+                        depth = depth_images[depth_name].get(frame)
+                        if depth is None:
+                            depth = data.image(scene, frame, DEPTH_SOURCES[depth_name][0])
+                            depth_images[depth_name][frame] = depth
+                        predicted, depth_valid = world_points_at(matches.uv, depth, record.intrinsics, T_world_camera)
+                        symmetric = (
+                            symmetric_distance(predicted, truth, record.T_world_object, model.center_of_mass, axis)
+                            if axis is not None
+                            else np.full(len(rows), np.nan)
+                        )
+                        entry[f"error_3d_m:{depth_name}"] = np.linalg.norm(predicted - truth, axis=1)
+                        entry[f"symmetric_error_m:{depth_name}"] = symmetric
+                        entry[f"depth_valid:{depth_name}"] = depth_valid
+                    collected[name].append(entry)
+
+    integer_keys = {"scene_id", "dataset", "scene", "frame", "point", "reference_frame", "reference_uv", "matched_uv"}
+
+    def joined(parts: list[dict[str, np.ndarray]], key: str) -> np.ndarray:
+        if parts:
+            return np.concatenate([p[key] for p in parts])
+        name = key.split(":")[0]
+        dtype = np.int64 if name in integer_keys else {"category": np.int8, "depth_valid": bool}.get(name, np.float64)
+        return np.zeros((0, 2) if name.endswith("_uv") else 0, dtype=dtype)
+
     sources_info = {name: _source_info(source) for name, source in sources.items()}
-    return TrackingResult(str(data.root), config, matches_by_method, sources_info, info)
+    results = {}
+    for depth_name in depths:
+        matches_by_method = {}
+        for name, parts in collected.items():
+            arrays = {k: joined(parts, k) for k in common_keys}
+            arrays |= {k: joined(parts, f"{k}:{depth_name}") for k in depth_keys}
+            matches_by_method[name] = TrackingMatches(
+                **arrays, reference_points=reference_points, scenes_evaluated=len(plan)
+            )
+        results[depth_name] = TrackingResult(
+            datasets=[str(data.root) for data in datasets],
+            config=replace(config, depth=depth_name),
+            matches=matches_by_method,
+            sources=sources_info,
+            dataset_infos=[
+                dict(data.info) | {"scenes_evaluated": sum(1 for dd, _ in plan if dd == k)}
+                for k, data in enumerate(datasets)
+            ],
+            scenes=scenes,
+        )
+    return results
+
+
+def worst_matches(matches: TrackingMatches, count: int) -> np.ndarray:
+    """Indices of the ``count`` matches with the largest 3D error, worst first (matches without depth last,
+    never picked while others remain)."""
+    error = np.where(np.isfinite(matches.error_3d_m), matches.error_3d_m, -np.inf)
+    order = np.argsort(-error, kind="stable")
+    return order[np.isfinite(error[order])][:count]
 
 
 # --- reporting ------------------------------------------------------------------------------------
+
+#: Worst matches per method in the gallery figure.
+GALLERY_COUNT = 6
 
 
 def _fmt(value: float | None, digits: int = 1) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
+def _estimate(method: Mapping[str, Any], metric: str, key: str, digits: int = 1, scale: float = 1.0) -> str:
+    """A percentile of a method's summary with its interval, e.g. ``39.5 [31.0, 52.3]``."""
+    value = method[metric][key]
+    interval = method.get("intervals", {}).get(metric, {}).get(key)
+    return format_estimate(
+        None if value is None else scale * value,
+        None if interval is None else [scale * v for v in interval],
+        digits,
+    )
+
+
+def _confidence(summary: Mapping[str, Any]) -> str:
+    boot = summary.get("bootstrap", {})
+    return (
+        f"[{100 * boot.get('confidence', DEFAULT_CONFIDENCE):.0f}% interval from {boot.get('resamples', '?')} "
+        f"resamples of the {summary.get('scenes', '?')} scenes]"
+    )
+
+
 def tracking_table(summary: Mapping[str, Any]) -> str:
-    """Markdown table of a :meth:`TrackingResult.summary`: one row per method."""
+    """Markdown table of a :meth:`TrackingResult.summary`: one row per method, every percentile with its
+    interval from resampling scenes."""
     lines = [
-        "| method | matches (with depth) | 3D error p50 / p90 / p99 (mm) | 3D error mod symmetry p50 / p90 (mm) "
-        "| pixel error p50 / p90 (px) | fraction closer p50 / p90 (%) |",
-        "|---|---|---|---|---|---|",
+        "| method | matches (with depth) | 3D error p50 (mm) | 3D error p90 (mm) | 3D error p99 (mm) "
+        "| 3D error mod symmetry p50 (mm) | 3D error mod symmetry p90 (mm) | pixel error p50 / p90 (px) "
+        "| fraction closer p50 / p90 (%) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for name, m in summary["methods"].items():
-        e, s, px, fc = m["error_3d_mm"], m["error_3d_symmetric_mm"], m["pixel_error_px"], m["fraction_closer"]
         counts = m["counts"]
-        pct = {k: None if v is None else 100.0 * v for k, v in fc.items()}
         lines.append(
             f"| {name} | {counts['visible_matches']} ({counts['matches_with_depth']}) "
-            f"| {_fmt(e['p50'])} / {_fmt(e['p90'])} / {_fmt(e['p99'])} | {_fmt(s['p50'])} / {_fmt(s['p90'])} "
-            f"| {_fmt(px['p50'])} / {_fmt(px['p90'])} | {_fmt(pct['p50'], 3)} / {_fmt(pct['p90'], 3)} |"
+            f"| {_estimate(m, 'error_3d_mm', 'p50')} | {_estimate(m, 'error_3d_mm', 'p90')} "
+            f"| {_estimate(m, 'error_3d_mm', 'p99')} | {_estimate(m, 'error_3d_symmetric_mm', 'p50')} "
+            f"| {_estimate(m, 'error_3d_symmetric_mm', 'p90')} "
+            f"| {_estimate(m, 'pixel_error_px', 'p50')} / {_estimate(m, 'pixel_error_px', 'p90')} "
+            f"| {_estimate(m, 'fraction_closer', 'p50', 3, 100.0)} "
+            f"/ {_estimate(m, 'fraction_closer', 'p90', 3, 100.0)} |"
         )
     return "\n".join(lines)
 
 
-def write_tracking_outputs(result: TrackingResult, out_dir: str | Path) -> dict[str, Path]:
-    """Write ``tracking.json`` (summary), ``tracking.md`` (table), ``tracking_histogram.png`` (the
-    paper's stacked, normalised log-scale histogram of the 3D error, and of the 3D error modulo
-    symmetry for a part with a symmetry axis) and ``tracking_cdf.png`` (CDFs of 3D error,
-    3D error modulo symmetry, pixel error and fraction closer) into ``out_dir``."""
+def tail_table(summary: Mapping[str, Any]) -> str:
+    """Markdown table of each method's tail: p99 / median of the 3D error and the share of far matches, with
+    their intervals, and the verdict (:func:`long_tail_verdict`)."""
+    far_mm = summary.get("far_match_mm", FAR_MATCH_M * 1000.0)
+    ratio = summary.get("long_tail_ratio", LONG_TAIL_RATIO)
+    lines = [
+        f"| method | 3D error p99 / p50 | matches > {far_mm:.0f} mm | share > {far_mm:.0f} mm (%) "
+        f"| verdict (no long tail: p99 / p50 interval below {ratio:g}) |",
+        "|---|---|---:|---|---|",
+    ]
+    for name, m in summary["methods"].items():
+        tail = m["tail"]
+        share, share_interval = tail["far_share"], tail["far_share_interval"]
+        share_pct = format_estimate(
+            None if share is None else 100.0 * share,
+            None if share_interval is None else [100.0 * v for v in share_interval],
+            2,
+        )
+        lines.append(
+            f"| {name} | {format_estimate(tail['p99_over_p50'], tail['p99_over_p50_interval'])} "
+            f"| {tail['far_matches']} of {m['counts']['matches_with_depth']} | {share_pct} | {tail['verdict']} |"
+        )
+    return "\n".join(lines)
+
+
+def far_match_table(summary: Mapping[str, Any]) -> str:
+    """Markdown table of where each method's far matches land (:func:`attribute_matches`): count and share
+    of its far matches per category; with sensor depth also how many are far only because of the depth
+    (within the far threshold with ideal depth at the same pixel)."""
+    far_mm = summary.get("far_match_mm", FAR_MATCH_M * 1000.0)
+    sensor = summary["config"]["depth"] != "ideal"
+    header = f"| method | matches > {far_mm:.0f} mm | " + " | ".join(MATCH_CATEGORIES) + " |"
+    if sensor:
+        header += f" of these, within {far_mm:.0f} mm with ideal depth |"
+    lines = [header, "|---|---:|" + "---:|" * len(MATCH_CATEGORIES) + ("---:|" if sensor else "")]
+    for name, m in summary["methods"].items():
+        far = m["tail"]["far_matches"]
+        by = m["far_by_category"]
+        cells = [
+            f"{by[c]['matches']} ({100.0 * by[c]['matches'] / far:.0f}%)" if far else "0" for c in MATCH_CATEGORIES
+        ]
+        row = f"| {name} | {far} | " + " | ".join(cells) + " |"
+        if sensor:
+            row += f" {sum(v['far_only_from_depth'] for v in by.values())} |"
+        lines.append(row)
+    return "\n".join(lines)
+
+
+def per_scene_table(summary: Mapping[str, Any]) -> str:
+    """Markdown table, one row per scene (dataset seed, scene index, background): per method its far
+    matches out of its matches with depth and their share."""
+    far_mm = summary.get("far_match_mm", FAR_MATCH_M * 1000.0)
+    methods = list(summary["methods"])
+    lines = [
+        "| dataset seed | scene | background | " + " | ".join(f"{m}: > {far_mm:.0f} mm" for m in methods) + " |",
+        "|---:|---:|---|" + "---:|" * len(methods),
+    ]
+    for k, scene in enumerate(summary["scene_list"]):
+        cells = []
+        for name in methods:
+            row = summary["methods"][name]["per_scene"][k]
+            with_depth, far = row["matches_with_depth"], row["far_matches"]
+            cells.append(f"{far}/{with_depth} ({100.0 * far / with_depth:.1f}%)" if with_depth else "-")
+        lines.append(
+            f"| {scene['dataset_seed']} | {scene['scene_index']} | {scene['background']} | " + " | ".join(cells) + " |"
+        )
+    return "\n".join(lines)
+
+
+def tracking_report(summary: Mapping[str, Any]) -> str:
+    """All tables of a summary in Markdown: percentiles, tails, far matches by category, per scene."""
+    far_mm = summary.get("far_match_mm", FAR_MATCH_M * 1000.0)
+    seeds = ", ".join(str(s) for s in summary.get("dataset_seeds", []))
+    return "\n\n".join(
+        [
+            f"{summary['scenes']} scenes of {summary['object']} (dataset seeds {seeds}, split "
+            f"`{summary.get('split', '?')}`), predicted points from {summary['config']['depth']} depth. "
+            f"Every figure with its {_confidence(summary)}.",
+            tracking_table(summary),
+            f"Tails (3D error; a match more than {far_mm:.0f} mm off is far):",
+            tail_table(summary),
+            "Where the far matches land (matched pixel: on the part's mask, on the wrong half along its axis or "
+            "elsewhere; otherwise its point from ideal depth and the true camera pose on the table top, above it "
+            "(robot, fixture) or background):",
+            far_match_table(summary),
+            "Per scene:",
+            per_scene_table(summary),
+        ]
+    )
+
+
+def gallery_entries(result: TrackingResult, method: str, count: int = GALLERY_COUNT) -> list[dict[str, Any]]:
+    """The ``count`` worst matches of ``method`` (:func:`worst_matches`) for
+    :func:`don_gym.plotting.plot_match_gallery`: both frames' RGB, the reference pixel, the match and the
+    true position, and titles with the scene, the 3D error and where the match landed."""
+    matches = result.matches[method]
+    opened: dict[int, DONDataset] = {}
+    entries = []
+    for i in worst_matches(matches, count):
+        d, scene = int(matches.dataset[i]), int(matches.scene[i])
+        data = opened.setdefault(d, DONDataset(result.datasets[d]))
+        info = next(s for s in result.scenes if s["dataset"] == d and s["scene"] == scene)
+        reference_frame, frame = int(matches.reference_frame[i]), int(matches.frame[i])
+        entries.append(
+            {
+                "reference_rgb": data.image(scene, reference_frame, "rgb"),
+                "reference_uv": matches.reference_uv[i],
+                "match_rgb": data.image(scene, frame, "rgb"),
+                "match_uv": matches.matched_uv[i],
+                "true_uv": matches.true_uv[i],
+                "reference_title": f"seed {info['dataset_seed']} scene {info['scene_index']}, frame {reference_frame}",
+                "match_title": f"frame {frame}: {1000.0 * matches.error_3d_m[i]:.0f} mm, "
+                f"{MATCH_CATEGORIES[int(matches.category[i])]}",
+            }
+        )
+    return entries
+
+
+def write_worst_matches_figure(
+    result: TrackingResult,
+    methods: Sequence[str],
+    path: str | Path,
+    count: int = GALLERY_COUNT,
+    title: str | None = None,
+) -> Path:
+    """The gallery of the ``count`` worst matches of each of ``methods`` (:func:`gallery_entries`), one
+    column pair per method."""
+    from don_gym import plotting
+
+    unknown = [m for m in methods if m not in result.matches]
+    if unknown:
+        raise DonGymError(f"methods {unknown}: not in the result; expected some of {list(result.matches)}")
+    return plotting.plot_match_gallery(
+        {m: gallery_entries(result, m, count) for m in methods},
+        path,
+        title=title
+        or f"Worst matches, {result.dataset_infos[0].get('object')} ({result.config.depth} depth): reference "
+        "point (o, left) and best match (x, right; o: where the point is)",
+    )
+
+
+def write_tracking_outputs(
+    result: TrackingResult, out_dir: str | Path, gallery_methods: Sequence[str] | None = None
+) -> dict[str, Path]:
+    """Write ``tracking.json`` (summary), ``tracking.md`` (:func:`tracking_report`), ``tracking_histogram.png``
+    (the paper's stacked, normalised log-scale histogram of the 3D error, and of the 3D error modulo
+    symmetry for a part with a symmetry axis), ``tracking_cdf.png`` (CDFs of 3D error, 3D error modulo
+    symmetry, pixel error and fraction closer) and ``tracking_worst_matches.png`` (the worst matches of
+    ``gallery_methods``; None: every method but the oracle; none, no gallery) into ``out_dir``."""
     import json
 
     from don_gym import plotting
@@ -495,9 +1095,9 @@ def write_tracking_outputs(result: TrackingResult, out_dir: str | Path) -> dict[
     summary = result.summary()
     paths = {"json": out / "tracking.json", "table": out / "tracking.md"}
     write_text_atomic(paths["json"], json.dumps(summary, indent=1) + "\n")
-    write_text_atomic(paths["table"], tracking_table(summary) + "\n")
+    write_text_atomic(paths["table"], tracking_report(summary) + "\n")
     matches = result.matches
-    name = Path(result.dataset).name
+    name = ", ".join(Path(d).name for d in result.datasets)
     errors_mm = {k: m.error_3d_m * 1000.0 for k, m in matches.items()}
     symmetric_mm = {k: m.symmetric_error_m * 1000.0 for k, m in matches.items()}
     has_axis = any(np.isfinite(m.symmetric_error_m).any() for m in matches.values())
@@ -523,4 +1123,8 @@ def write_tracking_outputs(result: TrackingResult, out_dir: str | Path) -> dict[
     paths["cdf"] = plotting.plot_cdfs(
         panels, out / "tracking_cdf.png", title=f"Tracking, {summary['object']} ({name}, {depth} depth)"
     )
+    if gallery_methods is None:
+        gallery_methods = [k for k in matches if result.sources[k].get("method") != "oracle"]
+    if gallery_methods:
+        paths["worst_matches"] = write_worst_matches_figure(result, gallery_methods, out / "tracking_worst_matches.png")
     return paths

@@ -276,6 +276,59 @@ def plot_cdfs(
     return _save(fig, path)
 
 
+def plot_match_gallery(
+    entries_by_method: Mapping[str, Sequence[Mapping[str, Any]]],
+    path: str | Path,
+    *,
+    title: str | None = None,
+    panel_width_in: float = 2.6,
+) -> Path:
+    """Matches to look at (a method's worst, say): per method a pair of columns, per match a row with the
+    reference frame, the reference pixel marked (o), beside the frame of the match, the best match
+    marked (x) and, when given, the point's true position (o).
+
+    ``entries_by_method``: {method: entries}, each a mapping with ``reference_rgb`` and ``match_rgb``
+    ((H, W, 3) uint8), ``reference_uv`` and ``match_uv`` ((2,) pixel ``(u, v)``), optionally ``true_uv``
+    (2,), ``reference_title`` and ``match_title``. Methods with fewer entries leave their rows empty.
+    """
+    methods = list(entries_by_method)
+    if not methods:
+        raise DonGymError("no methods to show; expected {method: [match entries]}")
+    rows = max(1, max(len(entries) for entries in entries_by_method.values()))
+    shapes = [np.asarray(e["match_rgb"]).shape for entries in entries_by_method.values() for e in entries]
+    aspect = shapes[0][0] / shapes[0][1] if shapes else 0.75
+    fig = _new_figure(
+        2 * panel_width_in * len(methods), rows * panel_width_in * aspect + 0.9, dpi=100, layout="constrained"
+    )
+    axes = fig.subplots(rows, 2 * len(methods), squeeze=False)
+    for ax in axes.ravel():
+        ax.set_axis_off()
+    marker = {"markersize": 11, "markeredgewidth": 2.0, "linestyle": "none"}
+    for column, method in enumerate(methods):
+        axes[0, 2 * column].set_title(method, fontsize=9, loc="left", fontweight="bold")
+        for row, entry in enumerate(entries_by_method[method]):
+            reference_ax, match_ax = axes[row, 2 * column], axes[row, 2 * column + 1]
+            reference_ax.imshow(entry["reference_rgb"], interpolation="bilinear")
+            u, v = np.asarray(entry["reference_uv"], dtype=np.float64)
+            reference_ax.plot([u], [v], "o", markerfacecolor="none", markeredgecolor="lime", **marker)
+            match_ax.imshow(entry["match_rgb"], interpolation="bilinear")
+            if entry.get("true_uv") is not None:
+                u, v = np.asarray(entry["true_uv"], dtype=np.float64)
+                match_ax.plot([u], [v], "o", markerfacecolor="none", markeredgecolor="lime", **marker)
+            u, v = np.asarray(entry["match_uv"], dtype=np.float64)
+            match_ax.plot([u], [v], "x", color="red", **marker)
+            for ax, key in ((reference_ax, "reference_title"), (match_ax, "match_title")):
+                if entry.get(key):
+                    # Titles below the images, so that the method's name above the first row stays readable.
+                    ax.set_xlabel(str(entry[key]), fontsize=7)
+                    ax.set_axis_on()
+                    ax.set_xticks([])
+                    ax.set_yticks([])
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return _save(fig, path)
+
+
 # --- grasp outcomes (don_gym.grasp_benchmark) --------------------------------------------------------
 
 

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from synthetic_scenes import Sphere, look_at, render_scene, table_scene
 
 from don_gym.build import DatasetConfig, build_dataset
 from don_gym.checkpoints import save_checkpoint
@@ -15,16 +17,24 @@ from don_gym.cli import main
 from don_gym.descriptor_sources import DescriptorSource
 from don_gym.errors import DonGymError
 from don_gym.evaluation import (
+    FAR_MATCH_M,
+    MATCH_CATEGORIES,
     TrackingConfig,
+    TrackingMatches,
+    attribute_matches,
     evaluate_tracking,
+    long_tail_verdict,
     match_descriptors,
+    per_scene_table,
+    seed_split,
     symmetric_distance,
     visible_projections,
     world_points_at,
 )
-from don_gym.geometry import CameraIntrinsics, make_transform
+from don_gym.geometry import CameraIntrinsics, invert_transform, make_transform, project_points, transform_points
 from don_gym.model import DenseObjectNet
 from don_gym.objects import load_object
+from don_gym.plotting import plot_match_gallery
 
 torch.set_num_threads(1)
 
@@ -156,17 +166,40 @@ def test_cli_writes_json_table_and_plots(ideal_dataset: Path, tmp_path: Path, ca
     assert code == 0
     printed = capsys.readouterr().out
     assert "| oracle |" in printed and "net.safetensors" in printed
+    assert "seed 1000 (spent)" in printed and "Per scene:" in printed and "| 1000 | 1 | table " in printed
     summary = json.loads((out / "tracking.json").read_text())
     assert set(summary["methods"]) == {"oracle", str(checkpoint)}
     for method in summary["methods"].values():
         for metric in ("error_3d_mm", "error_3d_symmetric_mm", "pixel_error_px", "fraction_closer"):
             assert set(method[metric]) == {"p50", "p90", "p99", "mean"}
+            low, high = method["intervals"][metric]["p50"]
+            assert low <= method[metric]["p50"] <= high
         assert method["counts"]["visible_matches"] > 0
+        assert len(method["per_scene"]) == 2 and set(method["far_by_category"]) == set(MATCH_CATEGORIES)
     assert summary["methods"][str(checkpoint)]["source"]["method"] == "supervised-edge"
     assert summary["config"]["depth"] == "ideal" and summary["percentiles"] == [50, 90, 99]
-    for name in ("tracking_histogram.png", "tracking_cdf.png"):
+    assert summary["split"] == "spent" and summary["bootstrap"]["unit"] == "scene"
+    for name in ("tracking_histogram.png", "tracking_cdf.png", "tracking_worst_matches.png"):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert not list(out.glob(".*partial*"))
+
+
+def test_scenes_of_several_datasets_are_pooled(ideal_dataset: Path, tmp_path: Path) -> None:
+    copy = tmp_path / "copy"
+    shutil.copytree(ideal_dataset, copy)
+    config = TrackingConfig(points_per_scene=6)
+    single = evaluate_tracking(ideal_dataset, ["oracle"], config, progress=False).matches["oracle"]
+    pooled_result = evaluate_tracking([ideal_dataset, copy], ["oracle"], config, progress=False)
+    pooled = pooled_result.matches["oracle"]
+    assert len(pooled_result.scenes) == 4 and [s["dataset"] for s in pooled_result.scenes] == [0, 0, 1, 1]
+    assert len(pooled.scene_id) == 2 * len(single.scene_id) and pooled.reference_points == 2 * single.reference_points
+    # The copy's scenes are the same scenes: the same matches, under their own scene ids.
+    second = pooled.dataset == 1
+    np.testing.assert_array_equal(pooled.scene_id[second], single.scene_id + 2)
+    np.testing.assert_allclose(pooled.error_3d_m[second], single.error_3d_m)
+    assert pooled_result.summary()["methods"]["oracle"]["tail"]["far_matches"] == 0
+    with pytest.raises(DonGymError, match="each dataset may be given once"):
+        evaluate_tracking([ideal_dataset, ideal_dataset], ["oracle"], config, progress=False)
 
 
 def test_bad_inputs_are_clear_errors(ideal_dataset: Path, tmp_path: Path, capsys) -> None:
@@ -188,3 +221,154 @@ def test_bad_inputs_are_clear_errors(ideal_dataset: Path, tmp_path: Path, capsys
         assert main(["evaluate", *argv, "--out", str(tmp_path / "o"), "--no-progress"]) == 2
         err = capsys.readouterr().err
         assert err.startswith("don-gym evaluate: error: ") and err.count("\n") == 1
+
+
+def test_far_matches_are_attributed_to_what_their_pixel_shows() -> None:
+    """A box (the part, long axis its x) on a table plane, a ball above the table (the robot), a table
+    edge and a depth hole; each matched pixel is put where a known surface shows."""
+    intrinsics = CameraIntrinsics.d435(160, 120)
+    primitives, box = table_scene(box_half_extents=(0.05, 0.02, 0.02))
+    primitives.append(Sphere(center=(0.02, 0.12, 0.10), radius=0.03))
+    T_world_camera = look_at(eye=(0.25, -0.05, 0.45), target=(0.0, 0.03, 0.0))
+    depth, index = render_scene(intrinsics, T_world_camera, primitives)
+    object_mask = index == 1
+    T_world_object = box.T_world_box
+
+    def pixel(point_world) -> list[int]:
+        uv, _ = project_points(intrinsics, transform_points(invert_transform(T_world_camera), np.array([point_world])))
+        return [int(round(uv[0, 0])), int(round(uv[0, 1]))]
+
+    def on_box(x_object: float) -> np.ndarray:  # a point on the box's top face, x along its long axis
+        return transform_points(T_world_object, np.array([[x_object, 0.0, 0.02]]))[0]
+
+    matched = np.array(
+        [
+            pixel(on_box(0.035)),  # true point at +0.03: same end
+            pixel(on_box(0.035)),  # true point at -0.03: the other end
+            pixel((0.12, -0.10, 0.0)),  # table top, inside the bounds
+            pixel((-0.06, 0.12, 0.0)),  # the table's plane beyond its edge (bounds below): background
+            pixel((0.02, 0.12, 0.13)),  # top of the ball above the table: robot/fixture
+            pixel((0.12, 0.02, 0.0)),  # table, but a hole in the depth: background
+        ]
+    )
+    depth[matched[5, 1], matched[5, 0]] = 0.0
+    truth = np.array([on_box(0.03), on_box(-0.03), *([on_box(0.03)] * 4)])
+    assert object_mask[matched[0, 1], matched[0, 0]] and index[matched[4, 1], matched[4, 0]] == 2
+    category = attribute_matches(
+        matched,
+        truth,
+        object_mask,
+        depth,
+        intrinsics,
+        T_world_camera,
+        T_world_object,
+        np.zeros(3),
+        np.array([1.0, 0.0, 0.0]),
+        table_height_m=0.0,
+        table_bounds_xy_m=(-0.05, 0.5, -0.5, 0.5),
+    )
+    names = [MATCH_CATEGORIES[k] for k in category]
+    assert names == ["part, elsewhere", "part, wrong end", "table", "background", "robot/fixture", "background"]
+    # Without bounds the plane beyond the edge counts as table, as in the recorded scenes.
+    unbounded = attribute_matches(
+        matched, truth, object_mask, depth, intrinsics, T_world_camera, T_world_object, np.zeros(3),
+        np.array([1.0, 0.0, 0.0]), table_height_m=0.0,
+    )  # fmt: skip
+    assert MATCH_CATEGORIES[unbounded[3]] == "table"
+
+
+def _hand_made_matches() -> TrackingMatches:
+    """Three scenes of 10 matches: scene 0 has 4 far matches (2 on the table, 2 on the part's wrong end,
+    one of which is far only by its depth), scene 1 none, scene 2 has no depth at all."""
+    m = 30
+    scene_id = np.repeat([0, 1, 2], 10)
+    error = np.full(m, 0.004)
+    error[:4] = 0.25
+    error[20:] = np.nan
+    ideal = np.where(np.isnan(error), 0.004, error)
+    ideal[3] = 0.01
+    category = np.full(m, MATCH_CATEGORIES.index("part, elsewhere"), dtype=np.int8)
+    category[:2] = MATCH_CATEGORIES.index("table")
+    category[2:4] = MATCH_CATEGORIES.index("part, wrong end")
+    zeros = np.zeros(m, dtype=np.int64)
+    return TrackingMatches(
+        scene_id=scene_id,
+        dataset=zeros,
+        scene=scene_id,
+        frame=zeros + 1,
+        point=np.arange(m),
+        reference_frame=zeros,
+        reference_uv=np.zeros((m, 2), dtype=np.int64),
+        matched_uv=np.zeros((m, 2), dtype=np.int64),
+        true_uv=np.zeros((m, 2)),
+        pixel_error_px=np.full(m, 3.0),
+        error_3d_m=error,
+        symmetric_error_m=error / 2,
+        fraction_closer=np.full(m, 0.001),
+        depth_valid=np.isfinite(error),
+        error_3d_ideal_m=ideal,
+        category=category,
+        reference_points=12,
+        scenes_evaluated=3,
+    )
+
+
+def test_summary_gives_tails_categories_and_a_per_scene_table() -> None:
+    summary = _hand_made_matches().summary()
+    tail = summary["tail"]
+    assert tail["far_matches"] == 4 and tail["far_share"] == pytest.approx(4 / 20)
+    low, high = tail["far_share_interval"]
+    assert low == 0.0 and high > 0.3  # the far matches all sit in one of the two scenes with depth
+    # Fewer than half the matches are ever far: the median stays 4 mm; the 99th percentile swings with scene 0.
+    assert summary["intervals"]["error_3d_mm"]["p50"] == [pytest.approx(4.0), pytest.approx(4.0)]
+    assert summary["intervals"]["error_3d_mm"]["p99"] == [pytest.approx(4.0), pytest.approx(250.0)]
+    assert tail["p99_over_p50"] == pytest.approx(62.5) and tail["verdict"] == "not settled"
+    assert tail["verdict"] == long_tail_verdict(tail["p99_over_p50_interval"])
+    by = summary["far_by_category"]
+    assert by["table"]["matches"] == 2 and by["part, wrong end"]["matches"] == 2
+    assert by["part, wrong end"]["far_only_from_depth"] == 1 and by["table"]["far_only_from_depth"] == 0
+    assert [s["far_matches"] for s in summary["per_scene"]] == [4, 0, 0]
+    assert [s["matches_with_depth"] for s in summary["per_scene"]] == [10, 10, 0]
+    table = per_scene_table(
+        {
+            "methods": {"net": summary},
+            "scene_list": [
+                {"dataset_seed": 4101, "scene_index": k, "background": f"table checks ({k}, 0, 0)"} for k in range(3)
+            ],
+        }
+    )
+    rows = table.splitlines()
+    assert rows[2] == "| 4101 | 0 | table checks (0, 0, 0) | 4/10 (40.0%) |"
+    assert rows[3].endswith("| 0/10 (0.0%) |") and rows[4].endswith("| - |")
+    assert FAR_MATCH_M == 0.1 and "> 100 mm" in rows[0]
+
+
+def test_long_tail_verdict_needs_the_whole_interval() -> None:
+    assert long_tail_verdict((3.1, 9.9)) == "no long tail"
+    assert long_tail_verdict((3.1, 10.0)) == "not settled"  # the sample cannot rule a tail out
+    assert long_tail_verdict((10.0, 41.0)) == "long tail"
+    assert long_tail_verdict((float("nan"), 4.0)) == "-"
+    assert (seed_split(4101), seed_split(3102), seed_split(1000), seed_split(0), seed_split(7)) == (
+        "test",
+        "dev",
+        "spent",
+        "training",
+        "unlisted",
+    )
+
+
+def test_gallery_figure_is_written(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    entry = {
+        "reference_rgb": rng.integers(0, 255, (24, 32, 3), dtype=np.uint8),
+        "reference_uv": [5, 6],
+        "match_rgb": rng.integers(0, 255, (24, 32, 3), dtype=np.uint8),
+        "match_uv": [20, 10],
+        "true_uv": [6.5, 7.0],
+        "reference_title": "seed 4101 scene 0, frame 2",
+        "match_title": "frame 5: 412 mm, table",
+    }
+    path = plot_match_gallery({"a/supervised-edge": [entry, entry], "a/supervised-mask": [entry]}, tmp_path / "g.png")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(DonGymError, match="no methods"):
+        plot_match_gallery({}, tmp_path / "empty.png")

@@ -16,22 +16,31 @@ in every other frame where a point is visible, the best match (argmin L2 over th
 per match the 3D error, the 3D error modulo the part's rotational symmetry, the pixel error to the
 true projection and the fraction of pixels closer than the true match.
 
-DATA must be scenes the networks were NOT trained on: build a separate dataset with another seed,
-e.g. `don-gym build-dataset --object toolcap --seed 1000 --out data/eval_toolcap` (the shipped
-networks were trained on seed 0). Predicted 3D points use the frame's true camera pose, so the
-errors measure the descriptors (and, with --depth sensor, the sensor depth), not hand-eye
-calibration.
+DATA must be scenes the networks were NOT trained on and no decision has used. Several datasets
+(e.g. one per seed) are pooled: every percentile comes with a 95% interval from resampling their
+scenes (the unit a long tail comes in), and per method the report gives the share of matches more
+than 100 mm off, where those far matches land (part: wrong end or elsewhere, table, background,
+robot/fixture) and each scene's share. Which seeds are for what (test, development, spent,
+training) is set in don_gym.evaluation and listed in docs/reproduction.md; each dataset's is
+printed. Predicted 3D points use the frame's true camera pose, so the errors measure the
+descriptors (and, with --depth sensor, the sensor depth), not hand-eye calibration.
 """
 
 EPILOG = """\
-examples:
-  don-gym evaluate --data data/eval_toolcap --out eval/toolcap
-  don-gym evaluate --data data/eval_toolcap --models oracle toolcap/supervised-edge run/model.safetensors \\
+examples (3101 3102 3103: the development seeds):
+  for seed in 3101 3102 3103; do
+    don-gym build-dataset --object toolcap --scenes 8 --frames 12 --size 640x480 --seed $seed \\
+        --no-fusion --out data/dev_toolcap_$seed
+  done
+  don-gym evaluate --data data/dev_toolcap_3101 data/dev_toolcap_3102 data/dev_toolcap_3103 --out eval/toolcap
+  don-gym evaluate --data data/dev_toolcap_3101 --models oracle toolcap/supervised-edge run/model.safetensors \\
       --points 20 --depth sensor --out eval/toolcap_sensor
 
-writes OUT/tracking.json (percentiles 50/90/99 of each metric and counts per method), OUT/tracking.md
-(the table printed), OUT/tracking_histogram.png (stacked, normalised, log-scale histogram of the 3D
-error, as in the paper) and OUT/tracking_cdf.png (CDFs of every metric, log x).
+writes OUT/tracking.json (percentiles 50/90/99 of each metric with their intervals, tails, far matches
+by category and per scene, counts per method), OUT/tracking.md (the tables printed),
+OUT/tracking_histogram.png (stacked, normalised, log-scale histogram of the 3D error, as in the
+paper), OUT/tracking_cdf.png (CDFs of every metric, log x) and OUT/tracking_worst_matches.png (the
+worst matches of every network: reference pixel beside the best match).
 """
 
 
@@ -43,7 +52,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--data", required=True, metavar="DIR", help="held-out dataset (don-gym build-dataset)")
+    parser.add_argument(
+        "--data",
+        required=True,
+        nargs="+",
+        metavar="DIR",
+        help="held-out dataset(s) of one part (don-gym build-dataset); the scenes of several are pooled",
+    )
     parser.add_argument(
         "--models",
         nargs="+",
@@ -97,7 +112,8 @@ def run(args: argparse.Namespace) -> int:
         TrackingConfig,
         dataset_object,
         evaluate_tracking,
-        tracking_table,
+        seed_split,
+        tracking_report,
         write_tracking_outputs,
     )
     from don_gym.io import check_output_dir
@@ -118,12 +134,16 @@ def run(args: argparse.Namespace) -> int:
         max_scenes=args.max_scenes,
     )
     config.validate()
-    dataset = DONDataset(args.data)
-    models = args.models if args.models is not None else default_models(dataset_object(dataset))
+    datasets = [DONDataset(path) for path in args.data]
+    models = args.models if args.models is not None else default_models(dataset_object(datasets[0]))
     result = evaluate_tracking(
-        dataset, models, config, progress=not args.no_progress, device=args.device, batch_size=args.batch_size
+        datasets, models, config, progress=not args.no_progress, device=args.device, batch_size=args.batch_size
     )
-    print(tracking_table(result.summary()))  # before writing: a disk that fills up meanwhile loses no result
+    for data in datasets:
+        seed = data.info.get("seed")
+        split = seed_split(seed) if isinstance(seed, int) else "unlisted"
+        print(f"{data.root}: seed {seed} ({split})")
+    print(tracking_report(result.summary()))  # before writing: a disk that fills up meanwhile loses no result
     paths = write_tracking_outputs(result, args.out)
     print("wrote " + ", ".join(str(p) for p in paths.values()))
     return 0
