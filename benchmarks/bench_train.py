@@ -11,11 +11,14 @@ Further parts (``--parts``), each against its baseline in the same run, on a dat
 - ``loader`` ("train-loader"): training images/s of ``resnet-lite`` on 128x128 crops with batches built
   in the training loop (``--workers 0``, the baseline) and in worker processes, in alternating blocks;
 - ``ddp`` ("train-ddp"): ``don-gym train`` in one process against ``torchrun`` with 2 gloo processes;
+- ``threads`` ("train-threads"): training steps and inference of ``resnet-lite`` with 1 and 2 torch threads, on the
+  machine as it is and while processes this run starts keep all cores but one busy (the README's advice to train
+  with ``--threads 1`` on a shared machine rests on it);
 - ``gpu`` ("train-gpu", needs CUDA; ``benchmarks/device_check_train.sh``): images/s of ``resnet-lite`` and
   ``resnet34`` on whole 640x480 frames, fp32 against mixed precision, and the share of step time spent
   waiting for data.
 
-    python benchmarks/bench_train.py            # full run (speed, loader, ddp), records RESULTS.md
+    python benchmarks/bench_train.py            # full run (speed, loader, ddp, threads), records RESULTS.md
     python benchmarks/bench_train.py --quick    # smoke run, few repeats, records nothing
 """
 
@@ -47,7 +50,7 @@ from don_gym.train import TRAIN_STATE, TrainConfig, train  # noqa: E402
 
 BASELINE_ARCH = "resnet34"
 TARGET_MS = 30.0
-PARTS = ("speed", "loader", "ddp", "gpu")
+PARTS = ("speed", "loader", "ddp", "threads", "gpu")
 #: Frames and crops of the loader, ddp and gpu parts: the shipped networks' training set-up.
 FRAME_SIZE = (640, 480)
 CROP_SIZE = (128, 128)
@@ -128,13 +131,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument(
         "--parts",
-        default="speed,loader,ddp",
+        default="speed,loader,ddp,threads",
         help=f"comma-separated parts among {', '.join(PARTS)} (default %(default)s)",
     )
     parser.add_argument("--loader-workers", default="1,2", help="worker counts timed against 0 (default 1,2)")
     parser.add_argument("--loader-steps", type=int, default=10, help="timed steps per block of the loader part")
     parser.add_argument("--loader-blocks", type=int, default=4, help="blocks per setting of the loader part")
     parser.add_argument("--ddp-steps", type=int, default=24, help="timed steps of each run of the ddp part")
+    parser.add_argument("--threads-blocks", type=int, default=2, help="alternating blocks of the threads part")
     parser.add_argument("--gpu-steps", type=int, default=60, help="timed steps of each run of the gpu part")
     parser.add_argument("--gpu-batch-size", type=int, default=8, help="batch of the gpu part (default 8)")
     parser.add_argument(
@@ -156,7 +160,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         args.train_steps, args.train_warmup, args.repeats, args.warmup = 1, 1, 3, 1
         args.width, args.height, args.inference_threads = 160, 120, args.inference_threads[:1]
         args.loader_steps, args.loader_blocks, args.loader_workers = 2, 1, args.loader_workers[-1:]
-        args.ddp_steps, args.gpu_steps = 2, 4
+        args.ddp_steps, args.gpu_steps, args.threads_blocks = 2, 4, 1
     if args.device == "auto":
         args.device = "cuda" if torch.cuda.is_available() else "cpu"
     return args
@@ -464,6 +468,87 @@ def run_ddp(args: argparse.Namespace) -> None:
     _record(args, "train-ddp", "Data-parallel training on the CPU: torchrun with 2 gloo processes vs 1", body)
 
 
+class BusyCores:
+    """``count`` processes that each keep one core busy (a Python loop) while the block runs: another
+    user's work on a shared machine, made reproducible."""
+
+    def __init__(self, count: int) -> None:
+        self.count = count
+        self.processes: list[subprocess.Popen] = []
+
+    def __enter__(self) -> BusyCores:
+        command = [sys.executable, "-c", "while True: pass"]
+        self.processes = [subprocess.Popen(command) for _ in range(self.count)]
+        time.sleep(0.5)  # running before the timing starts
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for process in self.processes:
+            process.kill()
+            process.wait()
+
+
+def run_threads(args: argparse.Namespace) -> None:
+    """The "train-threads" part: ``resnet-lite`` training steps and inference with 1 and 2 torch threads, on
+    the machine as it is and with all cores but one kept busy by other processes, the four settings in
+    alternating blocks (the speed part's synthetic steps and frames)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    conditions = {"as it is": 0, f"{max(cores - 1, 1)} of {cores} cores busy": max(cores - 1, 1)}
+    thread_counts = (1, 2)
+    settings = [(condition, threads) for condition in conditions for threads in thread_counts]
+    one_arch = argparse.Namespace(**{**vars(args), "archs": [DEFAULT_ARCH]})
+    step_seconds: dict[tuple[str, int], list[float]] = {setting: [] for setting in settings}
+    frame_ms: dict[tuple[str, int], list[float]] = {setting: [] for setting in settings}
+    loads: dict[str, list[float]] = {condition: [] for condition in conditions}
+    default_threads = torch.get_num_threads()
+    for _ in range(args.threads_blocks):
+        for condition, spinners in conditions.items():
+            with BusyCores(spinners), OtherProcessLoad() as load:
+                for threads in thread_counts:
+                    frame_ms[condition, threads] += time_inference(one_arch, threads)[DEFAULT_ARCH]
+                    torch.set_num_threads(threads)
+                    step_seconds[condition, threads] += time_training(one_arch)[DEFAULT_ARCH]
+            if load.cores is not None:
+                loads[condition].append(load.cores)
+    torch.set_num_threads(default_threads)
+
+    def images_per_s(setting: tuple[str, int]) -> float:
+        return args.batch_size / float(np.median(step_seconds[setting]))
+
+    rows = []
+    for condition, threads in settings:
+        ms = frame_ms[condition, threads]
+        train_slowdown = images_per_s((condition, 1)) / images_per_s((condition, threads))
+        infer_slowdown = float(np.median(ms)) / float(np.median(frame_ms[condition, 1]))
+        rows.append(
+            f"| {condition} | {threads} | {images_per_s((condition, threads)):.1f} | {train_slowdown:.2f}x "
+            f"| {np.median(ms):.1f} ({np.percentile(ms, 90):.1f}) | {infer_slowdown:.2f}x |"
+        )
+    load_text = "; ".join(
+        f"{name}: {np.mean(values):.2f}" if values else f"{name}: unknown" for name, values in loads.items()
+    )
+    body = "\n".join(
+        [
+            f"`{DEFAULT_ARCH}` on the CPU: training steps as in the speed part (forward + supervised l2 loss + "
+            f"backward + Adam step, batch {args.batch_size}, {args.width}x{args.height}, median over "
+            f"{args.train_steps} steps after {args.train_warmup} warm-up per block) and `descriptor_image` on "
+            f"one {args.width}x{args.height} frame (median and 90th percentile over {args.repeats} frames after "
+            f"{args.warmup} warm-up per block), with `torch.set_num_threads(1)` and `(2)`; on the machine as it "
+            "is and while processes this run starts each keep a core busy (a Python loop), "
+            f"{args.threads_blocks} alternating blocks of the four settings. Slowdown: time against 1 thread "
+            "under the same condition.",
+            "",
+            "| machine | torch threads | train images/s | train slowdown vs 1 thread | inference ms, median (p90) "
+            "| inference slowdown vs 1 thread |",
+            "|---|---|---|---|---|---|",
+            *rows,
+            "",
+            f"CPU cores kept busy by other processes while timing (the busy processes included): {load_text}.",
+        ]
+    )
+    _record(args, "train-threads", "Torch threads on a busy machine: 1 vs 2", body)
+
+
 def run_gpu(args: argparse.Namespace) -> None:
     """The "train-gpu" part: images/s on one GPU, fp32 against mixed precision, and the data-wait share."""
     if not torch.cuda.is_available():
@@ -512,7 +597,7 @@ def run_gpu(args: argparse.Namespace) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    runners = {"speed": run_speed, "loader": run_loader, "ddp": run_ddp, "gpu": run_gpu}
+    runners = {"speed": run_speed, "loader": run_loader, "ddp": run_ddp, "threads": run_threads, "gpu": run_gpu}
     for part in args.parts:
         print(f"--- {part}", flush=True)
         runners[part](args)
