@@ -82,7 +82,8 @@ class TrainConfig:
     1e-3 for the from-scratch ``resnet-lite`` archs. ``crop_size`` (width, height) trains on
     object-centred random crops (None: whole frames); the network still runs on whole frames.
     ``threads`` sets torch's CPU threads (None: torch's default); on a machine whose cores
-    are shared with other work, 1 thread avoids OpenMP stalls that can slow a step 10x.
+    are shared with other work, 1 thread avoids OpenMP stalls that slow a step several-fold (benchmarks/RESULTS.md,
+    section ``train-threads``).
 
     ``batch_size`` is the batch of one step over all processes of a torchrun launch (each of
     N processes computes ``batch_size / N``). ``workers`` processes build the batches (0: the
