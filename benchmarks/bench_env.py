@@ -74,6 +74,16 @@ def make_panda_gym() -> tuple[gym.Env | None, str]:
         return None, f"panda-gym unavailable ({type(exc).__name__}: {exc})"
 
 
+def egl_description(opengl_renderers: set[str]) -> str:
+    """What EGL rendered with on this machine, as the EGL plugin reported it (``Bullet.opengl_renderer``)."""
+    if not opengl_renderers:
+        return "EGL was unavailable here, so its rows fell back to TinyRenderer."
+    names = ", ".join(f"`{name}`" for name in sorted(opengl_renderers))
+    software_rasterisers = ("llvmpipe", "softpipe", "swiftshader")
+    software = any(word in name.lower() for name in opengl_renderers for word in software_rasterisers)
+    return f"EGL rendered with {names}" + (" (software OpenGL on the CPU)." if software else ".")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter
@@ -115,6 +125,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # (b) wrist camera 160x120: TinyRenderer and EGL, ideal depth and the D435 model.
     camera_rows = []
+    opengl_renderers = set()
     configs = [((160, 120), r, s) for r in ("tiny", "egl") for s in ("ideal", "d435")]
     # 640x480 with the default sensor only: where the renderers' costs differ most.
     configs += [((640, 480), r, "d435") for r in ("tiny", "egl")]
@@ -123,6 +134,8 @@ def main(argv: list[str] | None = None) -> int:
             warnings.simplefilter("always")
             env = gym.make("DONToolcapPick-v0", control="ee", image_size=size, sensor=sensor, renderer=renderer)
         used = env.unwrapped.renderer
+        if used == "egl":
+            opengl_renderers.add(env.unwrapped.sim.opengl_renderer or "an OpenGL renderer that did not name itself")
         n = camera_steps if size == (160, 120) else max(10, camera_steps // 3)
         result = summarise([measure(env, n, seed=r) for r in range(max(1, rounds // 2))])
         with silence_c_stdout():
@@ -170,8 +183,7 @@ def main(argv: list[str] | None = None) -> int:
         ),
         "",
         f'(b) `control="ee"` with the wrist RGB-D camera, {camera_steps} random steps (640x480: a third) x '
-        f"{max(1, rounds // 2)} rounds. TinyRenderer is the default everywhere; EGL runs on Mesa llvmpipe "
-        "here (no GPU).",
+        f"{max(1, rounds // 2)} rounds. TinyRenderer is the default everywhere; {egl_description(opengl_renderers)}",
         "",
         "| image | renderer | depth sensor | steps/s | steps/CPU-s | others (cores) | >= 40 steps/s |",
         "|---|---|---|---:|---:|---:|---|",

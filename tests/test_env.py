@@ -283,6 +283,9 @@ def test_render_rgb_array_and_egl_or_fallback():
         )
     try:
         assert env.unwrapped.renderer in ("egl", "tiny")
+        # What EGL renders with (bench_env reports it), e.g. "llvmpipe (LLVM ...)"; nothing for TinyRenderer.
+        opengl_renderer = env.unwrapped.sim.opengl_renderer
+        assert opengl_renderer if env.unwrapped.renderer == "egl" else opengl_renderer is None
         obs, info = env.reset(seed=0)
         assert info["renderer"] == env.unwrapped.renderer
         frame = env.render()

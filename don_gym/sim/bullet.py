@@ -9,6 +9,7 @@ import contextlib
 import os
 import pkgutil
 import sys
+import tempfile
 import warnings
 from collections.abc import Iterator, Sequence
 
@@ -25,11 +26,12 @@ GRAVITY_M_S2 = 9.81
 
 
 @contextlib.contextmanager
-def silence_c_stdout() -> Iterator[None]:
-    """Redirect the process's file descriptor 1 to /dev/null for the duration.
+def silence_c_stdout(keep: list[str] | None = None) -> Iterator[None]:
+    """Redirect the process's file descriptor 1 away from the terminal for the duration.
 
     PyBullet's C code (V-HACD progress, the EGL plugin's banner) prints straight to fd 1,
-    bypassing ``sys.stdout``; benchmark tables and CLI output would drown in it.
+    bypassing ``sys.stdout``; benchmark tables and CLI output would drown in it. With ``keep``,
+    the lines printed meanwhile are appended to it on exit (else they go to /dev/null).
     """
     try:
         sys.stdout.flush()
@@ -37,14 +39,20 @@ def silence_c_stdout() -> Iterator[None]:
     except (OSError, ValueError):  # no real fd 1 (e.g. some notebook front-ends)
         yield
         return
-    devnull = os.open(os.devnull, os.O_WRONLY)
+    sink = tempfile.TemporaryFile() if keep is not None else None
+    target = sink.fileno() if sink is not None else os.open(os.devnull, os.O_WRONLY)
     try:
-        os.dup2(devnull, 1)
+        os.dup2(target, 1)
         yield
     finally:
         os.dup2(saved, 1)
         os.close(saved)
-        os.close(devnull)
+        if sink is None:
+            os.close(target)
+        else:
+            sink.seek(0)
+            keep.extend(sink.read().decode(errors="replace").splitlines())
+            sink.close()
 
 
 def pose_matrix(position: Sequence[float], quaternion_xyzw: Sequence[float]) -> np.ndarray:
@@ -86,7 +94,7 @@ class Bullet:
             placement within 0.5 mm in the oracle test).
         renderer: ``"tiny"`` or ``"egl"``; ``"egl"`` loads the eglRenderer plugin on this
             client and falls back to ``"tiny"`` with a warning when that fails. The renderer
-            actually in use is :attr:`renderer`.
+            actually in use is :attr:`renderer`; :attr:`opengl_renderer` names what EGL renders with.
     """
 
     def __init__(
@@ -115,6 +123,9 @@ class Bullet:
             deterministicOverlappingPairs=1,
         )
         self.renderer = "tiny"
+        #: The OpenGL renderer the EGL plugin reported (a GPU's name, or e.g. Mesa's software
+        #: ``llvmpipe (LLVM ...)``); None with TinyRenderer or when the plugin did not say.
+        self.opengl_renderer: str | None = None
         if renderer == "egl":
             self.renderer = self._load_egl()
 
@@ -122,13 +133,16 @@ class Bullet:
         loader = pkgutil.get_loader("eglRenderer")
         reason = "the eglRenderer module is not installed with pybullet"
         if loader is not None:
-            with silence_c_stdout():
+            banner: list[str] = []
+            with silence_c_stdout(keep=banner):
                 plugin = self.client.loadPlugin(loader.get_filename(), "_eglRendererPlugin")
                 if plugin >= 0:
                     # The plugin creates its OpenGL context, and prints about it, at the first image.
                     self.client.getCameraImage(8, 8, renderer=p.ER_BULLET_HARDWARE_OPENGL)
             if plugin >= 0:
                 self._egl_plugin = plugin
+                reported = [line.split("=", 1)[1].strip() for line in banner if line.startswith("GL_RENDERER=")]
+                self.opengl_renderer = reported[0] if reported else None
                 return "egl"
             reason = "loading the plugin failed (no EGL / OpenGL driver?)"
         warnings.warn(f"renderer='egl' unavailable: {reason}; using 'tiny' (TinyRenderer)", stacklevel=3)
