@@ -281,7 +281,8 @@ def plot_match_gallery(
     path: str | Path,
     *,
     title: str | None = None,
-    panel_width_in: float = 2.6,
+    panel_width_in: float = 2.4,
+    dpi: int = 80,
 ) -> Path:
     """Matches to look at (a method's worst, say): per method a pair of columns, per match a row with the
     reference frame, the reference pixel marked (o), beside the frame of the match, the best match
@@ -298,7 +299,7 @@ def plot_match_gallery(
     shapes = [np.asarray(e["match_rgb"]).shape for entries in entries_by_method.values() for e in entries]
     aspect = shapes[0][0] / shapes[0][1] if shapes else 0.75
     fig = _new_figure(
-        2 * panel_width_in * len(methods), rows * panel_width_in * aspect + 0.9, dpi=100, layout="constrained"
+        2 * panel_width_in * len(methods), rows * panel_width_in * aspect + 0.9, dpi=dpi, layout="constrained"
     )
     axes = fig.subplots(rows, 2 * len(methods), squeeze=False)
     for ax in axes.ravel():
