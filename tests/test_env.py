@@ -18,6 +18,7 @@ import trimesh
 import don_gym  # noqa: F401  (registers the env ids)
 from don_gym.errors import DonGymError, MeshError
 from don_gym.geometry import invert_transform, project_points, transform_points
+from don_gym.sim.backdrop import BACKDROP_SETS
 from don_gym.sim.camera import body_mask, render_camera
 from don_gym.sim.env import PickPlaceEnv
 from don_gym.sim.part import radius_profile
@@ -329,6 +330,75 @@ def test_fixed_poses_are_spread_and_point_eight_ways(grasp_env):
         yaws.append(np.rad2deg(np.arctan2(axis[1], axis[0])) % 360)
     gaps = np.diff(np.sort(yaws))
     assert len(yaws) == 8 and gaps.min() > 35  # eight directions, ~45 degrees apart
+
+
+# ------------------------------------------------------------------------ backgrounds
+def test_random_background_is_seeded_and_leaves_what_the_seed_gives_as_plain():
+    size = (48, 36)
+    plain = gym.make("DONToolcapPick-v0", image_size=size)  # the default background
+    random_a = gym.make("DONToolcapPick-v0", image_size=size, background="random")
+    random_b = gym.make("DONToolcapPick-v0", image_size=size, background="random")
+    try:
+        # A random pose: the seed draws it, then the calibration error; the backdrop must not take their draws.
+        obs_plain, info_plain = plain.reset(seed=7)
+        obs_a, info_a = random_a.reset(seed=7)
+        random_b.reset(seed=8)  # another episode first must not leak into the next one
+        obs_b, info_b = random_b.reset(seed=7)
+        for key in obs_a:
+            assert np.array_equal(obs_a[key], obs_b[key]), key  # same seed, same pixels
+        assert info_a["backdrop"] == info_b["backdrop"]
+        assert info_a["backdrop"]["table_texture_family"] in BACKDROP_SETS["classic"]
+        assert info_plain["background"] == "plain" and info_plain["backdrop"] is None
+        # The part, the camera, the robot and the calibration error are the seed's, as with "plain".
+        for key in ("T_world_object", "T_world_camera", "T_camera_reportedcamera"):
+            assert np.array_equal(info_a[key], info_plain[key]), key
+        for key in ("camera_pose", "joint_positions", "ee_pose", "gripper_width"):
+            assert np.array_equal(obs_a[key], obs_plain[key]), key
+        # The plain table is one flat colour; the backdrop covers it, and another seed draws another one.
+        colours, counts = np.unique(obs_plain["rgb"].reshape(-1, 3), axis=0, return_counts=True)
+        table = np.all(obs_plain["rgb"] == colours[counts.argmax()], axis=-1)
+        assert table.mean() > 0.5
+        assert np.any(obs_a["rgb"] != obs_plain["rgb"], axis=-1)[table].mean() > 0.9
+        # At a fixed pose the part stays where it is; the table's pixels change with the seed.
+        obs_7, info_7 = random_a.reset(seed=7, options={"pose_id": 2})
+        obs_9, info_9 = random_a.reset(seed=9, options={"pose_id": 2})
+        assert np.array_equal(info_7["T_world_object"], info_9["T_world_object"])
+        assert info_7["backdrop"] == info_a["backdrop"] != info_9["backdrop"]
+        plain_7 = plain.reset(seed=7, options={"pose_id": 2})[0]["rgb"]
+        colours, counts = np.unique(plain_7.reshape(-1, 3), axis=0, return_counts=True)
+        table = np.all(plain_7 == colours[counts.argmax()], axis=-1)
+        assert np.any(obs_9["rgb"] != obs_7["rgb"], axis=-1)[table].mean() > 0.5
+        # A reset without a seed continues the backdrop stream of the last seeded one.
+        random_a.reset(seed=5)
+        random_b.reset(seed=5)
+        after_a, after_b = random_a.reset()[1]["backdrop"], random_b.reset()[1]["backdrop"]
+        assert after_a == after_b != random_a.reset(seed=5)[1]["backdrop"]
+    finally:
+        for env in (plain, random_a, random_b):
+            env.close()
+
+
+def test_random_wide_background_passes_the_env_checkers_and_bad_values_are_refused():
+    from gymnasium.utils.env_checker import check_env
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    for background in ("random", "random-wide"):
+        env = gym.make("DONToolcapPick-v0", image_size=TINY, background=background)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # advice about action ranges and 2D observations only
+                check_env(env.unwrapped)
+                if background == "random":
+                    sb3_check_env(env.unwrapped)
+            families = {env.reset(seed=s)[1]["backdrop"]["table_texture_family"] for s in range(12)}
+            assert families <= set(BACKDROP_SETS["classic" if background == "random" else "wide"])
+            if background == "random-wide":
+                assert families - set(BACKDROP_SETS["classic"])  # the wide families do show up
+        finally:
+            env.close()
+    for bad in ("wood", None, ["random"]):
+        with pytest.raises(DonGymError, match=r"background=.*expected one of \['plain', 'random', 'random-wide'\]"):
+            gym.make("DONToolcapPick-v0", image_size=TINY, background=bad)
 
 
 # -------------------------------------------------------------------------- bad input

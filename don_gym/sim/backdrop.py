@@ -3,7 +3,9 @@
 The paper randomises the background of its recordings per scene; a network that has only seen a
 few kinds of background can take an unseen, high-contrast one for the part. :func:`backdrop_texture`
 draws one texture of a *family* (the pure core: a generator in, an image out) and :class:`Backdrop`
-lays textured quads over the table top and the floor of a scene and re-textures them.
+lays textured quads over the table top and the floor of a scene and re-textures them (and recolours the
+handover cradle). Its users: the dataset recorder (:class:`~don_gym.sim.recorder.SceneRecorder`) and the
+env's ``background="random"`` (:class:`~don_gym.sim.env.PickPlaceEnv`).
 
 Families (:data:`BACKDROP_SETS`): ``"classic"`` is the recorder's original three (smooth two-colour
 noise, stripes, checks); ``"wide"`` adds plain colours, gradients, many-colour noise, dots, scattered
@@ -104,11 +106,13 @@ class Backdrop:
 
     Box shapes carry no texture coordinates, so the textures go on visual-only quads: one laid over the
     table top (0.2 mm above it, so nothing on the table is ever hidden) and one floor at :data:`FLOOR_Z_M`.
-    The quads have no collision shape: they change pixels only, never physics.
+    The quads have no collision shape: they change pixels only, never physics. ``cradle_id``: the handover
+    cradle's body, which :meth:`randomise` also gives a random colour (None: left as it is).
     """
 
-    def __init__(self, sim: Bullet) -> None:
+    def __init__(self, sim: Bullet, cradle_id: int | None = None) -> None:
         self.sim = sim
+        self.cradle_id = cradle_id
         self._texture_dir = tempfile.TemporaryDirectory(prefix="don_gym_textures_")
         self._texture_count = 0
         x0, x1, y0, y1 = TABLE_BOUNDS_M
@@ -139,8 +143,8 @@ class Backdrop:
     def randomise(
         self, rng: np.random.Generator, families: tuple[str, ...] = BACKDROP_SETS["classic"]
     ) -> dict[str, Any]:
-        """New textures on the table top, then the floor, from ``rng``; returns what was drawn (each
-        surface's family and mean colour), for the scene's record."""
+        """New textures on the table top, then the floor, then the cradle's colour, from ``rng``; returns what
+        was drawn (each surface's family and mean colour, ``cradle_rgba``), for the scene's record."""
         client = self.sim.client
         settings: dict[str, Any] = {}
         for name, body_id in (("table", self.table_surface_id), ("floor", self.floor_id)):
@@ -152,6 +156,9 @@ class Backdrop:
             client.changeVisualShape(body_id, -1, rgbaColor=[1, 1, 1, 1], textureUniqueId=client.loadTexture(str(path)))
             settings[f"{name}_texture_mean_rgb"] = texture.reshape(-1, 3).mean(axis=0).round(1)
             settings[f"{name}_texture_family"] = family
+        if self.cradle_id is not None:
+            settings["cradle_rgba"] = [*rng.uniform(0.1, 0.9, size=3), 1.0]
+            client.changeVisualShape(self.cradle_id, -1, rgbaColor=settings["cradle_rgba"])
         return settings
 
     def close(self) -> None:

@@ -18,6 +18,7 @@ from gymnasium import spaces
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics, make_transform
 from don_gym.objects import ObjectModel, load_object
+from don_gym.sim.backdrop import BACKDROP_SETS, Backdrop
 from don_gym.sim.bullet import Bullet, silence_c_stdout
 from don_gym.sim.camera import check_renderer, look_at_camera_pose, render_camera, specular_map
 from don_gym.sim.robot import EE_WRIST_MAX_RAD, Panda, wrap_angle
@@ -36,6 +37,13 @@ from don_gym.sim.task import (
 )
 
 CONTROL_MODES = ("grasp", "ee")
+#: ``background=``: the scene behind the part. "plain": the plain table and no floor, the same pixels as
+#: always; the others: the dataset recorder's procedural backdrops (table top and floor) and cradle colour,
+#: redrawn at every reset, from the backdrop families of :data:`~don_gym.sim.backdrop.BACKDROP_SETS` given here.
+BACKGROUNDS: dict[str, str | None] = {"plain": None, "random": "classic", "random-wide": "wide"}
+#: Second random stream of a reset's seed, ``default_rng([seed, BACKGROUND_STREAM])``: the backdrop's draws,
+#: apart from those of the part's pose, the sensor noise and the calibration error.
+BACKGROUND_STREAM = 2
 #: Keys of ``reset(options=...)``.
 RESET_OPTIONS = ("pose_id", "hand_start")
 #: ``reset(options={"hand_start": ...})``: where an ee-mode episode starts the hand. "observe": the wrist
@@ -86,6 +94,7 @@ def _check_arguments(
     reward_type: Any,
     render_mode: Any,
     max_steps: Any,
+    background: Any = "plain",
 ) -> None:
     """The env's arguments that are checked before anything is loaded (the sizes, sensor and renderer:
     where they are used); each DonGymError names the argument and what it expects."""
@@ -98,6 +107,7 @@ def _check_arguments(
         raise DonGymError(f"object_scale={object_scale!r}: expected a positive, finite factor (mesh units to metres)")
     _check_choice(control, "control", CONTROL_MODES)
     _check_choice(reward_type, "reward_type", REWARD_TYPES)
+    _check_choice(background, "background", tuple(BACKGROUNDS))
     if render_mode is not None and not (isinstance(render_mode, str) and render_mode == "rgb_array"):
         raise DonGymError(f"render_mode={render_mode!r} is unsupported; expected None or 'rgb_array'")
     if not isinstance(observe_images, (bool, np.bool_)):
@@ -149,6 +159,9 @@ class PickPlaceEnv(gym.Env):
     starts the hand elsewhere (:data:`HAND_STARTS`): the scripted grasp, run with the true pose, stops
     with the hand open 12 cm above the part (``"above_part"``), open around it (``"at_part"``) or closed
     on it (``"in_hand"``); a start for learning (:class:`~don_gym.wrappers.HandStarts`), not the task.
+    With ``background="random"`` the table top, the floor and the cradle get a new look at every reset
+    (see Arguments), drawn from the reset's seed apart from everything above, which stays as with
+    ``"plain"``: the same seed gives the same part pose, sensor noise and calibration error either way.
 
     ## Episode End
     ``control="grasp"``: terminated after its one step. ``control="ee"``: terminated on success
@@ -168,15 +181,24 @@ class PickPlaceEnv(gym.Env):
     - ``renderer``: "tiny" (TinyRenderer, default, identical pixels on every machine) or "egl" (falls
       back to "tiny" with a warning).
     - ``reward_type``: "sparse" or "dense" (see Rewards).
+    - ``background`` (:data:`BACKGROUNDS`): "plain" (default): the plain wooden-brown table and green cradle, pixel
+      for pixel the scene the shipped networks' benchmarks were measured on. "random": what ``build-dataset`` records by
+      default (the classic backdrop families, :data:`~don_gym.sim.backdrop.BACKDROP_SETS`: two-colour noise,
+      stripes or checks in random colours) on the table top and on a floor under the table, and a random
+      cradle colour, redrawn at every reset from ``default_rng([seed, BACKGROUND_STREAM])`` (a ``reset``
+      without a seed continues that stream): the same seed gives the same pixels. "random-wide": the same
+      with the nine "wide" families (plain colours, gradients, many-colour noise, dots, rectangles, grain too).
+      Pixels only: the backdrop quads have no collision shape.
     - ``render_mode``: None or "rgb_array" (a fixed overview camera); ``render_size``: its (width, height).
     - ``max_steps``: ee-mode truncation.
 
     ## Info
     ``T_world_object``, ``T_world_camera`` (true), ``T_camera_reportedcamera`` (calibration error),
     ``outcome`` (one of :data:`~don_gym.sim.task.OUTCOMES`), ``is_success``, ``pose_id``, ``sensor``,
-    ``renderer`` (the one that ran), after a reset ``hand_start``; after a step also ``lifted``,
-    ``placement_distance_m``, ``placement_axis_error_rad``, and in grasp mode ``sim_time_s``, ``grasp_width_m``,
-    ``release_width_m`` (None for a phase the script did not reach).
+    ``renderer`` (the one that ran), ``background`` (the argument), ``backdrop`` (None with "plain", else what
+    the reset drew: each surface's texture family and mean RGB, ``cradle_rgba``), after a reset ``hand_start``;
+    after a step also ``lifted``, ``placement_distance_m``, ``placement_axis_error_rad``, and in grasp mode
+    ``sim_time_s``, ``grasp_width_m``, ``release_width_m`` (None for a phase the script did not reach).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 25}
@@ -194,9 +216,10 @@ class PickPlaceEnv(gym.Env):
         render_mode: str | None = None,
         render_size: tuple[int, int] = (320, 240),
         max_steps: int = 100,
+        background: str = "plain",
     ):
         super().__init__()
-        _check_arguments(object, object_scale, control, observe_images, reward_type, render_mode, max_steps)
+        _check_arguments(object, object_scale, control, observe_images, reward_type, render_mode, max_steps, background)
         image_size = _as_size(image_size, "image_size")
         self.render_size = _as_size(render_size, "render_size", allow_none=False)
         self.sensor = get_sensor(sensor)
@@ -216,6 +239,13 @@ class PickPlaceEnv(gym.Env):
         self.observation_arm_rad = self.robot.solve_top_down_camera(observation_camera_position(), OBSERVATION_YAW_RAD)
         self.robot.reset(self.observation_arm_rad)
         self.task.place_part(*FIXED_POSES[0])
+        self.background = background
+        # "plain" adds nothing to the scene: the same bodies, the same pixels as before the option existed.
+        families = BACKDROP_SETS[BACKGROUNDS[background]] if BACKGROUNDS[background] else None
+        self._backdrop = Backdrop(self.sim, cradle_id=self.task.cradle_id) if families else None
+        self._backdrop_families = families
+        self._backdrop_rng: np.random.Generator | None = None
+        self._backdrop_settings: dict[str, Any] | None = None
         self.sim.take_snapshot()
 
         self._grasp_point_object = grasp_point_object(self.model)
@@ -293,6 +323,8 @@ class PickPlaceEnv(gym.Env):
             "pose_id": self._pose_id,
             "sensor": self.sensor_name,
             "renderer": self.renderer,
+            "background": self.background,
+            "backdrop": None if self._backdrop_settings is None else dict(self._backdrop_settings),
         }
 
     # ----------------------------------------------------------------- reset
@@ -335,6 +367,7 @@ class PickPlaceEnv(gym.Env):
         self._steps = 0
         self._lifted = False
         self._ee_yaw_rad = float(OBSERVATION_YAW_RAD)
+        self._randomise_backdrop(seed)
         if HAND_STARTS[hand_start] is not None:
             action = self.oracle_action()
             script = GraspPlaceScript(self.sim, self.robot, self.task)
@@ -342,6 +375,18 @@ class PickPlaceEnv(gym.Env):
             self._ee_yaw_rad = yaw
         info = self._info() | {"outcome": "fail", "is_success": False, "hand_start": hand_start}
         return self._observation(), info
+
+    def _randomise_backdrop(self, seed: int | None) -> None:
+        """New backdrop and cradle colour for the episode; a stream of its own, so that the part's pose, the
+        sensor noise and the calibration error (``self.np_random``) are those of ``background="plain"``."""
+        if self._backdrop is None:
+            return
+        if seed is not None:
+            self._backdrop_rng = np.random.default_rng([int(seed), BACKGROUND_STREAM])
+        elif self._backdrop_rng is None:
+            self._backdrop_rng = np.random.default_rng()  # never seeded: as unseeded as the part's pose
+        drawn = self._backdrop.randomise(self._backdrop_rng, self._backdrop_families)
+        self._backdrop_settings = {k: v if isinstance(v, str) else np.asarray(v).tolist() for k, v in drawn.items()}
 
     # ------------------------------------------------------------------ step
     def step(self, action):
@@ -421,6 +466,9 @@ class PickPlaceEnv(gym.Env):
         if getattr(self, "sim", None) is not None:
             self.sim.close()
             self.sim = None
+        if getattr(self, "_backdrop", None) is not None:
+            self._backdrop.close()
+            self._backdrop = None
         super().close()
 
     # ------------------------------------------------------ for oracles

@@ -15,7 +15,7 @@ from scipy.stats import qmc
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics, invert_transform, rotation_angle_rad
 from don_gym.objects import ObjectModel
-from don_gym.sim.backdrop import Backdrop, check_backdrop_set
+from don_gym.sim.backdrop import BACKDROP_SETS, Backdrop, check_backdrop_set
 from don_gym.sim.bullet import Bullet
 from don_gym.sim.camera import body_mask, look_at_camera_pose, random_lighting, render_camera, specular_map
 from don_gym.sim.distractors import Distractors
@@ -114,7 +114,7 @@ class SceneRecorder:
         self.robot = Panda(self.sim)
         self.task = PickPlaceTask(self.sim, model)
         self.backdrop_families = check_backdrop_set(backgrounds)
-        self.backdrop = Backdrop(self.sim)
+        self.backdrop = Backdrop(self.sim, cradle_id=self.task.cradle_id)
         self.distractors = Distractors(self.sim, distractors)
         self.lighting_mode = check_lighting_mode(lighting)
         self.sim.take_snapshot()
@@ -122,12 +122,6 @@ class SceneRecorder:
     @property
     def renderer(self) -> str:
         return self.sim.renderer
-
-    def _randomise_background(self, rng: np.random.Generator) -> dict[str, Any]:
-        settings = self.backdrop.randomise(rng, self.backdrop_families)
-        settings["cradle_rgba"] = [*rng.uniform(0.1, 0.9, size=3), 1.0]
-        self.sim.client.changeVisualShape(self.task.cradle_id, -1, rgbaColor=settings["cradle_rgba"])
-        return settings
 
     def _reach(self, T_world_camera_wanted: np.ndarray) -> np.ndarray | None:
         """Put the arm so the camera is at the wanted pose; returns the true camera pose or None."""
@@ -189,7 +183,7 @@ class SceneRecorder:
         # whatever was recorded before.
         self.sim.restore_snapshot()
         self.robot.reset(ARM_HOME_RAD)
-        background = self._randomise_background(rng)
+        background = self.backdrop.randomise(rng, BACKDROP_SETS["classic"])
         if T_world_object is None:
             self.task.place_part(*self.task.sample_pose(rng))
             self.task.settle()
@@ -197,6 +191,9 @@ class SceneRecorder:
             self.task.part.set_pose(np.asarray(T_world_object, dtype=np.float64))
         T_world_object = self.task.part.T_world_object
         variety_rng = np.random.default_rng([seed, VARIETY_STREAM])
+        if self.backdrop_families != BACKDROP_SETS["classic"]:
+            # Over the classic backdrop, whose draws keep the main stream (and so the part's pose) as it was.
+            background.update(self.backdrop.randomise(variety_rng, self.backdrop_families))
         lighting = random_lighting(variety_rng) if self.lighting_mode == "random" else None
         if lighting is not None:
             background["lighting"] = asdict(lighting)
