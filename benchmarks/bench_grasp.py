@@ -26,6 +26,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -87,6 +88,9 @@ HEADLINE_OBJECT = "toolcap"
 #: paper's camera is a D435.
 FIGURE_DEPTH = "sensor"
 GRASP_SENSORS = ("ideal", "d435@0.5", "d435")
+#: The env background of the second grasp run, the fixed poses over varied backgrounds: the backdrops and
+#: cradle colours of the datasets the networks are tested on (the recorder's classic families).
+GRASP_BACKGROUNDS = "random"
 SUPERVISED = ("supervised-edge", "supervised-mask")
 SELF_SUPERVISED = "self-supervised"
 #: "Slightly less accurate": a supervised network's median error at most this many times the self-supervised one's.
@@ -570,13 +574,32 @@ def tracking_claim_blocks(summaries: dict[str, dict[str, Any]], source: str) -> 
 # --- grasp ----------------------------------------------------------------------------------------
 
 
-def grasp(args: argparse.Namespace, work: Path, object_name: str) -> tuple[str, GraspBenchmarkResult]:
+def _copy_grasp_figures(args: argparse.Namespace, paths: dict[str, Path], prefix: str) -> list[str]:
+    """Copy a grasp run's charts to ``benchmarks/figures/PREFIX_KEY.png`` (not with ``--quick``); their names."""
+    if args.quick:
+        return []
+    FIGURES.mkdir(exist_ok=True)
+    figures = []
+    for key, path in paths.items():
+        if path.suffix == ".png":
+            target = FIGURES / f"{prefix}_{key}.png"
+            shutil.copyfile(path, target)
+            figures.append(f"`benchmarks/figures/{target.name}`")
+    return figures
+
+
+def grasp(
+    args: argparse.Namespace, work: Path, object_name: str
+) -> tuple[str, GraspBenchmarkResult, GraspBenchmarkResult]:
     """The object's grasp section: :func:`don_gym.grasp_benchmark.run_grasp_benchmark` (``don-gym benchmark grasp
     --object OBJECT``): oracle and the object's shipped networks on the 8 fixed poses, ``--repeats`` seeds,
     sensors ideal, d435@0.5 and d435 (the headline table is the D435's), ``--random-poses`` random poses, and
     the issue's targets checked (oracle 8/8 grasp & place; supervised networks 8/8 grasped and at least 7/8
-    grasp & place, per 8 poses). For the toolcap, the README's ``don-gym benchmark grasp --quick`` then runs as a
-    separate process and is timed; its episodes must equal the full run's matching ones.
+    grasp & place, per 8 poses). Then the same methods on the 8 fixed poses over varied backgrounds
+    (``--backgrounds random``: ``--background-repeats`` backdrops per pose, D435), with the same targets.
+    For the toolcap, the README's ``don-gym benchmark grasp --quick`` then runs as a separate process and is
+    timed; its episodes must equal the full run's matching ones. Returns the section, the plain run's result
+    and the varied backgrounds' result.
     """
     methods = ("oracle", *object_networks(object_name))
     config = GraspBenchmarkConfig(
@@ -589,16 +612,20 @@ def grasp(args: argparse.Namespace, work: Path, object_name: str) -> tuple[str, 
         random_poses=args.random_poses,
     )
     result = run_grasp_benchmark(config, workers=args.workers)
-    paths = write_grasp_outputs(result, work / f"grasp_{object_name}")
-    figures = []
-    if not args.quick:
-        FIGURES.mkdir(exist_ok=True)
-        prefix = "grasp" if object_name == HEADLINE_OBJECT else f"grasp_{object_name}"
-        for key, path in paths.items():
-            if path.suffix == ".png":
-                target = FIGURES / f"{prefix}_{key}.png"
-                shutil.copyfile(path, target)
-                figures.append(f"`benchmarks/figures/{target.name}`")
+    prefix = "grasp" if object_name == HEADLINE_OBJECT else f"grasp_{object_name}"
+    figures = _copy_grasp_figures(args, write_grasp_outputs(result, work / f"grasp_{object_name}"), prefix)
+    # The fixed poses over varied backgrounds, at the headline sensor; repeat r has the plain run's seed of
+    # repeat r (the same part pose, noise and calibration error), so the background is the only difference.
+    backgrounds_config = replace(
+        result.config,
+        sensors=(GRASP_SENSORS[-1],),
+        repeats=1 if args.quick else args.background_repeats,
+        random_poses=0,
+        backgrounds=GRASP_BACKGROUNDS,
+    )
+    backgrounds = run_grasp_benchmark(backgrounds_config, workers=args.workers)
+    backgrounds_paths = write_grasp_outputs(backgrounds, work / f"grasp_{object_name}_backgrounds")
+    figures += _copy_grasp_figures(args, backgrounds_paths, f"{prefix}_backgrounds")
     targets = check_targets(result)
     per_episode = sorted(e["seconds"] for e in result.episodes)
     width, height = result.config.image_size
@@ -626,13 +653,32 @@ def grasp(args: argparse.Namespace, work: Path, object_name: str) -> tuple[str, 
             if config.random_poses
             else ""
         )
-        + f"\n\n{len(result.episodes)} episodes in {result.seconds / 60:.1f} min; per episode median "
+        + "\n\n"
+        + backgrounds_section(backgrounds)
+        + f"\n\n{len(result.episodes)} + {len(backgrounds.episodes)} episodes (plain, varied backgrounds) in "
+        f"{result.seconds / 60:.1f} + {backgrounds.seconds / 60:.1f} min; per episode median "
         f"{per_episode[len(per_episode) // 2]:.1f} s (in a worker, env and model set-up included in the first)."
         + (f" Figures: {', '.join(figures)}." if figures else "")
     )
     if object_name == HEADLINE_OBJECT:
         body += "\n\n" + readme_quick_run(args, work, result)
-    return body, result
+    return body, result, backgrounds
+
+
+def backgrounds_section(result: GraspBenchmarkResult) -> str:
+    """RESULTS.md: the fixed poses over varied backgrounds, their outcomes, targets and misses."""
+    return (
+        f"#### {len(result.config.poses)} fixed poses over varied backgrounds, D435 sensor\n\n"
+        f'`background="{result.config.backgrounds}"`: every episode another procedural backdrop on the table top '
+        "and the floor (the families of the datasets the networks are tested on) and another cradle colour, drawn "
+        "from the episode's seed. Repeat r of a pose has the seed of the plain run's repeat r, so the part pose, "
+        "sensor noise and calibration error are that episode's and the background is the only difference.\n\n"
+        + outcome_table(result)
+        + "\n\nTargets over varied backgrounds (per 8 poses, scaled by the repeats):\n\n"
+        + "\n".join(f"- {line}" for line in check_targets(result))
+        + "\n\n"
+        + miss_table(result)
+    )
 
 
 def readme_quick_run(args: argparse.Namespace, work: Path, result: GraspBenchmarkResult) -> str:
@@ -675,17 +721,22 @@ def _targets(result: GraspBenchmarkResult) -> tuple[int, float, float]:
     return episodes, TARGET_GRASPED_PER_8 * episodes / 8.0, TARGET_PLACED_PER_8 * episodes / 8.0
 
 
-def grasp_block(result: GraspBenchmarkResult, source: str) -> str:
-    """README: the object's outcome table at the D435, the targets, a sentence per kind of network, and for
-    the headline object the depth-sensor sweep."""
+def _met_and_missed(result: GraspBenchmarkResult) -> tuple[list[str], list[str]]:
+    """The networks (no oracle) that meet the supervised target at the fixed poses, and those that miss it."""
+    _, need_grasped, need_placed = _targets(result)
+    networks = [s for kind, s in _by_kind(result).items() if kind != "oracle"]
+    met = [
+        s["name"] for s in networks if s["grasped"] >= need_grasped and s["counts"]["grasp_and_place"] >= need_placed
+    ]
+    return met, [s["name"] for s in networks if s["name"] not in met]
+
+
+def grasp_block(result: GraspBenchmarkResult, source: str, backgrounds: GraspBenchmarkResult | None = None) -> str:
+    """README: the object's outcome table at the D435, the targets, a sentence per kind of network, the
+    targets over varied backgrounds (``backgrounds``), and for the headline object the depth-sensor sweep."""
     by_kind = _by_kind(result)
     episodes, need_grasped, need_placed = _targets(result)
-    met = [
-        s["name"]
-        for kind, s in by_kind.items()
-        if kind != "oracle" and s["grasped"] >= need_grasped and s["counts"]["grasp_and_place"] >= need_placed
-    ]
-    missed = [s["name"] for kind, s in by_kind.items() if kind != "oracle" and s["name"] not in met]
+    met, missed = _met_and_missed(result)
     criterion = (
         "all 8 poses grasped and at least 7 of 8 grasped and placed, scaled to "
         f"{episodes} episodes (at least {need_grasped:g} grasped and {need_placed:g} grasped and placed)"
@@ -711,6 +762,16 @@ def grasp_block(result: GraspBenchmarkResult, source: str) -> str:
             f" {ssl['name']}: grasped {format_rate(ssl['grasped'], episodes)}, grasped and placed "
             f"{format_rate(ssl['counts']['grasp_and_place'], episodes)}, +axis flipped (placed upside down) in "
             f"{ssl['flipped']} of {episodes}."
+        )
+    if backgrounds is not None:
+        bg_episodes, bg_grasped, bg_placed = _targets(backgrounds)
+        bg_met, bg_missed = _met_and_missed(backgrounds)
+        lines[-1] += (
+            f' Over varied backgrounds (`background="{backgrounds.config.backgrounds}"`, '
+            f"{backgrounds.config.repeats} backdrops per fixed pose, {bg_episodes} episodes per method, sensor "
+            f"`{backgrounds.headline_sensor}`; at least {bg_grasped:g} grasped and {bg_placed:g} grasped and placed): "
+            + (f"met by {', '.join(bg_met)}" if bg_met else "met by no network")
+            + (f"; missed by {', '.join(bg_missed)}." if bg_missed else ".")
         )
     if result.config.object == HEADLINE_OBJECT and len(result.config.sensors) > 1:
         lines += ["", "Depth-sensor sweep from ideal depth to the D435:", "", sweep_table(result)]
@@ -853,6 +914,9 @@ def main() -> None:
     parser.add_argument("--points", type=int, default=16)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--random-poses", type=int, default=24, help="seeded random poses beyond the 8 fixed ones")
+    parser.add_argument(
+        "--background-repeats", type=int, default=3, help="backdrops per fixed pose in the varied-backgrounds run"
+    )
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--objects", nargs="+", default=list(OBJECTS), choices=OBJECTS, help="objects of both parts")
     parser.add_argument("--only", choices=("tracking", "grasp"), default=None)
@@ -892,21 +956,20 @@ def main() -> None:
                 args.quick,
             )
     if args.only in (None, "grasp"):
-        results = {}
+        results, backgrounds = {}, {}
         for object_name in args.objects:
-            body, results[object_name] = grasp(args, work, object_name)
+            body, results[object_name], backgrounds[object_name] = grasp(args, work, object_name)
             print(body)
             section = grasp_section(object_name)
             record(
                 section,
-                f"Grasp and place: {object_name}, 8 fixed poses, depth-sensor sweep, random poses",
+                f"Grasp and place: {object_name}, 8 fixed poses, depth-sensor sweep, random poses, varied backgrounds",
                 body,
                 after=None if object_name == HEADLINE_OBJECT else grasp_section(HEADLINE_OBJECT),
             )
             source = provenance("benchmarks/RESULTS.md", section)
-            write_blocks(
-                README_PATH, {block(f"grasp-{object_name}"): grasp_block(results[object_name], source)}, args.quick
-            )
+            readme_block = grasp_block(results[object_name], source, backgrounds[object_name])
+            write_blocks(README_PATH, {block(f"grasp-{object_name}"): readme_block}, args.quick)
         claims = grasp_claim_blocks(results, lambda o: provenance("../benchmarks/RESULTS.md", grasp_section(o)))
         write_blocks(REPRODUCTION_PATH, claims, args.quick)
 

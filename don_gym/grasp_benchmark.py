@@ -59,6 +59,12 @@ class GraspBenchmarkConfig:
             ``methods`` were trained at (they must agree), :data:`DEFAULT_IMAGE_SIZE` for the oracle alone.
         renderer: PyBullet renderer of the camera images.
         seed: benchmark seed from which every episode seed derives.
+        backgrounds: the env's ``background`` in every episode (:data:`don_gym.sim.env.BACKGROUNDS`):
+            ``"plain"`` (the plain table, as the paper's figures were measured), ``"random"`` (the datasets'
+            classic backdrops on the table top and the floor and a random cradle colour, drawn from the
+            episode's seed: each repeat of a pose is another background, the same for every method and
+            sensor, and the part, noise and calibration error are those of the plain episode with that
+            seed) or ``"random-wide"`` (the wide backdrop families).
     """
 
     object: str = "toolcap"
@@ -70,6 +76,7 @@ class GraspBenchmarkConfig:
     image_size: tuple[int, int] | None = None
     renderer: str = "tiny"
     seed: int = 0
+    backgrounds: str = "plain"
 
     def validate(self) -> None:
         if not self.methods:
@@ -88,8 +95,11 @@ class GraspBenchmarkConfig:
         for spec in self.sensors:
             parse_sensor(spec)
         from don_gym.sim.camera import check_renderer
+        from don_gym.sim.env import BACKGROUNDS
 
         check_renderer(self.renderer)
+        if not isinstance(self.backgrounds, str) or self.backgrounds not in BACKGROUNDS:
+            raise DonGymError(f"backgrounds={self.backgrounds!r}: expected one of {list(BACKGROUNDS)}")
         if self.image_size is None:
             return
         size = self.image_size
@@ -169,7 +179,7 @@ def random_pose_seed(seed: int, index: int) -> int:
 class EpisodeTask:
     """One episode: at fixed pose ``pose_id`` (``random_pose`` None) or at random pose ``random_pose``
     (``pose_id`` None, ``repeat`` 0: the seed that draws the pose also draws the noise, so a repeat
-    would be another pose)."""
+    would be another pose), with the env's ``background``."""
 
     sensor: str
     method: str
@@ -177,6 +187,7 @@ class EpisodeTask:
     repeat: int
     seed: int
     random_pose: int | None = None
+    background: str = "plain"
 
 
 def episode_tasks(config: GraspBenchmarkConfig) -> list[EpisodeTask]:
@@ -186,12 +197,14 @@ def episode_tasks(config: GraspBenchmarkConfig) -> list[EpisodeTask]:
     for sensor in config.sensors:
         for method in config.methods:
             tasks += [
-                EpisodeTask(sensor, method, int(pose), repeat, episode_seed(config.seed, pose, repeat))
+                EpisodeTask(
+                    sensor, method, int(pose), repeat, episode_seed(config.seed, pose, repeat), None, config.backgrounds
+                )
                 for pose in config.poses
                 for repeat in range(config.repeats)
             ]
             tasks += [
-                EpisodeTask(sensor, method, None, 0, random_pose_seed(config.seed, index), random_pose=index)
+                EpisodeTask(sensor, method, None, 0, random_pose_seed(config.seed, index), index, config.backgrounds)
                 for index in range(config.random_poses)
             ]
     return tasks
@@ -224,6 +237,7 @@ class EpisodeRunner:
                 image_size=self.config.image_size,
                 sensor=parse_sensor(sensor),
                 renderer=self.config.renderer,
+                background=self.config.backgrounds,
             )
         return self._envs[sensor]
 
@@ -248,9 +262,11 @@ class EpisodeRunner:
         start = time.perf_counter()
         agent, env = self._agent(task.sensor, task.method)
         options = None if task.random_pose is not None else {"pose_id": task.pose_id}
-        obs, _ = env.reset(seed=task.seed, options=options)
+        obs, reset_info = env.reset(seed=task.seed, options=options)
         true_action = env.unwrapped.oracle_action()
         record: dict[str, Any] = asdict(task)
+        # What the episode's background was (None: plain), to tell which backdrops a method missed on.
+        record["backdrop"] = reset_info["backdrop"]
         # Where the part lay: grasp point (m) and +axis yaw (rad); tells the random poses apart.
         record["true_action"] = [float(v) for v in true_action]
         try:
@@ -311,8 +327,9 @@ def _worker_run(indexed: tuple[int, EpisodeTask]) -> tuple[int, dict[str, Any]]:
 class GraspBenchmarkResult:
     """All episode records (in :func:`episode_tasks` order) and how long the run took.
 
-    Each record: ``sensor, method, pose_id, repeat, seed, random_pose, true_action`` (the oracle's
-    ``[x, y, z, yaw]``: where the part lay), ``outcome, lifted, agent_error``,
+    Each record: ``sensor, method, pose_id, repeat, seed, random_pose, background`` (the env's option),
+    ``backdrop`` (None for ``"plain"``, else the drawn texture families, their mean colours and the cradle's
+    colour), ``true_action`` (the oracle's ``[x, y, z, yaw]``: where the part lay), ``outcome, lifted, agent_error``,
     ``position_error_m`` (grasp point vs the true one), ``yaw_error_rad`` (|+axis yaw error|, in
     [0, pi]), ``flipped``, ``placement_axis_error_rad``, ``placement_distance_m``, ``seconds``.
     The agent's errors are against the true pose (:meth:`~don_gym.sim.env.PickPlaceEnv.oracle_action`);
@@ -469,10 +486,19 @@ def _summary_of(result: GraspBenchmarkResult, poses: str) -> dict[str, Any]:
     return summary["results" if poses == "fixed" else "random_pose_results"]
 
 
+def _backgrounds_text(config: GraspBenchmarkConfig) -> str:
+    """How the episodes' backgrounds were chosen (nothing for the plain table)."""
+    if config.backgrounds == "plain":
+        return ""
+    return f", background `{config.backgrounds}` (a new backdrop and cradle colour per episode, from its seed)"
+
+
 def _poses_text(result: GraspBenchmarkResult, poses: str) -> str:
     if poses == "fixed":
-        return f"{len(result.config.poses)} fixed poses x {result.config.repeats} repeats"
-    return f"{result.config.random_poses} random poses seeded from the benchmark seed, 1 episode each"
+        text = f"{len(result.config.poses)} fixed poses x {result.config.repeats} repeats"
+    else:
+        text = f"{result.config.random_poses} random poses seeded from the benchmark seed, 1 episode each"
+    return text + _backgrounds_text(result.config)
 
 
 def outcome_table(result: GraspBenchmarkResult, sensor: str | None = None, poses: str = "fixed") -> str:
@@ -509,7 +535,9 @@ def miss_table(result: GraspBenchmarkResult) -> str:
     descriptors or the agent; flips included), or an accurate grasp whose placement failed (the part
     tilted or slid in the hand or the cradle: the simulated placement, whatever the descriptors)."""
     lines = [
-        f"Episodes not placed, by cause, over every sensor and pose ({len(result.episodes)} episodes); "
+        f"Episodes not placed, by cause, over every sensor and pose ({len(result.episodes)} episodes"
+        + ("" if result.config.backgrounds == "plain" else f", background `{result.config.backgrounds}`")
+        + "); "
         f"an accurate grasp is within {ACCURATE_GRASP_M * 1000:g} mm of the true grasp point and "
         f"{math.degrees(ACCURATE_GRASP_YAW_RAD):g} deg of the true +axis.",
         "",
@@ -585,7 +613,8 @@ def write_grasp_outputs(result: GraspBenchmarkResult, out_dir: str | Path) -> di
         result.counts(sensor),
         out / "grasp_outcomes.png",
         title=f"{result.config.object}: {len(result.config.poses)} poses x {result.config.repeats} repeats, "
-        f"sensor {sensor}",
+        f"sensor {sensor}"
+        + ("" if result.config.backgrounds == "plain" else f", {result.config.backgrounds} backgrounds"),
     )
     if len(result.config.sensors) > 1:
         paths["sweep"] = plotting.plot_sweep(

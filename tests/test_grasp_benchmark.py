@@ -171,3 +171,34 @@ def test_random_poses_option_parsing(capsys) -> None:
         err = capsys.readouterr().err
         assert err.startswith("don-gym benchmark grasp: error: argument --random-poses: ") and err.count("\n") == 1
         assert "positive whole number" in err
+
+
+def test_random_backgrounds_are_recorded_per_episode_and_keep_the_seeds_draws(tmp_path: Path, capsys) -> None:
+    # Through the CLI: the oracle at one pose, two repeats (two background seeds), D435.
+    argv = ["benchmark", "grasp", "--quick", "--backgrounds", "random", "--methods", "oracle", "--poses", "0"]
+    argv += ["--repeats", "2", "--image-size", "160x120", "--workers", "1", "--no-progress", "--out", str(tmp_path)]
+    assert main(argv) == 0
+    assert "background `random`" in capsys.readouterr().out
+    saved = json.loads((tmp_path / "grasp_episodes.json").read_text())
+    episodes = saved["episodes"]
+    assert saved["summary"]["config"]["backgrounds"] == "random"
+    assert [e["background"] for e in episodes] == ["random", "random"]
+    assert all(e["outcome"] == "grasp_and_place" for e in episodes), episodes
+    # Each repeat another backdrop, drawn from the episode's seed.
+    assert episodes[0]["backdrop"] != episodes[1]["backdrop"]
+    assert {e["backdrop"]["table_texture_family"] for e in episodes} <= {"noise", "stripes", "checks"}
+    assert "background `random`" in (tmp_path / "grasp.md").read_text()
+
+    # The same seeds on the plain table: the same part pose, no backdrop.
+    plain = GraspBenchmarkConfig(methods=("oracle",), poses=(0,), repeats=2, sensors=("d435",), image_size=(160, 120))
+    runner = EpisodeRunner(plain)
+    try:
+        plain_episodes = [runner.run(task) for task in episode_tasks(plain)]
+    finally:
+        runner.close()
+    assert [e["background"] for e in plain_episodes] == ["plain", "plain"]
+    assert [e["backdrop"] for e in plain_episodes] == [None, None]
+    assert [e["seed"] for e in plain_episodes] == [e["seed"] for e in episodes]
+    assert [e["true_action"] for e in plain_episodes] == [e["true_action"] for e in episodes]
+    with pytest.raises(DonGymError, match=r"backgrounds='wood': expected one of \['plain', 'random', 'random-wide'\]"):
+        run_grasp_benchmark(dataclasses.replace(plain, backgrounds="wood"), workers=1, progress=False)

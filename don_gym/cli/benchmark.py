@@ -19,8 +19,10 @@ it in the handover cradle; outcomes fail / grasp only / grasp & place are counte
 the episode seed (depth-sensor noise and hand-eye calibration error); every method sees the same
 seeds. With several --sensors, a sweep from ideal depth to the D435 shows where each method breaks.
 --random-poses N adds N random poses (env.reset(seed), seeds derived from --seed: the same poses for
-every method and sensor), one episode each, reported in tables of their own. Rates carry their 95%
-Wilson interval.
+every method and sensor), one episode each, reported in tables of their own. --backgrounds random runs
+every episode over the datasets' procedural backdrops (table top and floor) and a random cradle colour,
+drawn from the episode's seed (each repeat another background; the part, noise and calibration error stay
+those of the plain episode). Rates carry their 95% Wilson interval.
 """
 
 EPILOG = """\
@@ -29,6 +31,7 @@ examples:
   don-gym benchmark grasp --methods oracle toolcap/supervised-edge --repeats 3 --sensors ideal d435 --out bench/
   don-gym benchmark grasp --methods oracle run/model.safetensors --sensors d435@0.25 d435@0.75 --out bench/
   don-gym benchmark grasp --quick --random-poses 16
+  don-gym benchmark grasp --quick --backgrounds random
 
 sensors: presets (ideal, d435, d435-clean, kinect) or NAME@SEVERITY, the preset scaled towards the ideal
 sensor (d435@0.5 = half the D435's noise, holes and calibration error). The last sensor is the headline
@@ -89,6 +92,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="wrist camera WIDTHxHEIGHT (default: the size the networks were trained at; 320x240 for the oracle alone)",
     )
     grasp.add_argument("--renderer", default="tiny", help="PyBullet renderer: tiny (default) or egl")
+    grasp.add_argument(
+        "--backgrounds",
+        default="plain",
+        metavar="BACKGROUND",
+        help="the env's background: plain (default, the plain table), random (the datasets' classic backdrops "
+        "and a random cradle colour per episode) or random-wide (the nine wide backdrop families)",
+    )
     grasp.add_argument("--seed", type=int, default=0, help="benchmark seed (default: 0)")
     grasp.add_argument("--workers", type=int, default=2, help="worker processes (default: 2)")
     grasp.add_argument("--device", default="cpu", help="device of the networks: cpu (default), cuda, cuda:N or auto")
@@ -146,6 +156,7 @@ def run(args: argparse.Namespace) -> int:
         image_size=None if args.image_size is None else parse_size(args.image_size, "--image-size"),
         renderer=args.renderer,
         seed=args.seed,
+        backgrounds=args.backgrounds,
     )
     result = run_grasp_benchmark(config, workers=args.workers, progress=not args.no_progress, device=args.device)
     print(outcome_table(result))
