@@ -876,12 +876,26 @@ def evaluate_tracking_depths(
     return results
 
 
-def worst_matches(matches: TrackingMatches, count: int) -> np.ndarray:
-    """Indices of the ``count`` matches with the largest 3D error, worst first (matches without depth last,
-    never picked while others remain)."""
+def worst_matches(matches: TrackingMatches, count: int, per_scene: int | None = 1) -> np.ndarray:
+    """Indices of ``count`` matches with the largest 3D error, worst first; matches without depth are never
+    picked. Far matches (:data:`FAR_MATCH_M`) are taken at most ``per_scene`` from one scene (one bad scene
+    would fill a gallery with near copies); the rest of ``count`` are the next worst whatever their scene."""
     error = np.where(np.isfinite(matches.error_3d_m), matches.error_3d_m, -np.inf)
     order = np.argsort(-error, kind="stable")
-    return order[np.isfinite(error[order])][:count]
+    order = order[np.isfinite(error[order])]
+    if per_scene is None:
+        return order[:count]
+    picked: list[int] = []
+    taken: dict[int, int] = {}
+    for i in order[error[order] > FAR_MATCH_M]:
+        scene = int(matches.scene_id[i])
+        if taken.get(scene, 0) < per_scene and len(picked) < count:
+            picked.append(int(i))
+            taken[scene] = taken.get(scene, 0) + 1
+    chosen = set(picked)
+    picked += [int(i) for i in order if int(i) not in chosen][: count - len(picked)]
+    picked_array = np.array(picked, dtype=np.int64)
+    return picked_array[np.argsort(-error[picked_array], kind="stable")]
 
 
 # --- reporting ------------------------------------------------------------------------------------

@@ -30,6 +30,7 @@ from don_gym.evaluation import (
     symmetric_distance,
     visible_projections,
     world_points_at,
+    worst_matches,
 )
 from don_gym.geometry import CameraIntrinsics, invert_transform, make_transform, project_points, transform_points
 from don_gym.model import DenseObjectNet
@@ -341,6 +342,15 @@ def test_summary_gives_tails_categories_and_a_per_scene_table() -> None:
     assert rows[2] == "| 4101 | 0 | table checks (0, 0, 0) | 4/10 (40.0%) |"
     assert rows[3].endswith("| 0/10 (0.0%) |") and rows[4].endswith("| - |")
     assert FAR_MATCH_M == 0.1 and "> 100 mm" in rows[0]
+
+
+def test_worst_matches_spread_over_scenes() -> None:
+    matches = _hand_made_matches()  # scene 0: four matches 250 mm off
+    matches.error_3d_m[15] = 0.2  # scene 1: one 200 mm off
+    np.testing.assert_array_equal(worst_matches(matches, 2, per_scene=None), [0, 1])
+    np.testing.assert_array_equal(worst_matches(matches, 2), [0, 15])  # one far match per scene first
+    np.testing.assert_array_equal(worst_matches(matches, 3), [0, 1, 15])  # then the next worst
+    assert not np.isin(worst_matches(matches, 30), np.arange(20, 30)).any()  # never a match without depth
 
 
 def test_long_tail_verdict_needs_the_whole_interval() -> None:
