@@ -16,7 +16,7 @@ import numpy as np
 from gymnasium import spaces
 
 from don_gym.errors import DonGymError
-from don_gym.geometry import CameraIntrinsics, make_transform
+from don_gym.geometry import CameraIntrinsics
 from don_gym.objects import ObjectModel, load_object
 from don_gym.sim.backdrop import BACKDROP_SETS, Backdrop
 from don_gym.sim.bullet import Bullet, silence_c_stdout
@@ -352,12 +352,8 @@ class PickPlaceEnv(gym.Env):
         else:
             x, y, yaw = self.task.sample_pose(self.np_random)
             self._pose_id = None
-        # Contact manifolds survive restoreState and warm-start the solver: a part put back where
-        # it lay last episode would then move differently. Parking the part and the robot away
-        # from everything and running collision detection deletes them.
-        self.task.part.set_pose(make_transform(translation=[0.0, 0.0, 50.0]))
         self.robot.reset(self.observation_arm_rad)
-        self.sim.client.performCollisionDetection()
+        self.task.forget_contacts()
         self.sim.restore_snapshot()
         self.robot.reset(self.observation_arm_rad)
         self.task.place_part(x, y, yaw)

@@ -181,6 +181,8 @@ class SceneRecorder:
         rng = np.random.default_rng(seed)
         # Back to the state after construction: bit-identical physics for the same seed,
         # whatever was recorded before.
+        self.robot.reset(ARM_HOME_RAD)
+        self.task.forget_contacts()
         self.sim.restore_snapshot()
         self.robot.reset(ARM_HOME_RAD)
         background = self.backdrop.randomise(rng, BACKDROP_SETS["classic"])

@@ -270,6 +270,14 @@ class PickPlaceTask:
         x0, x1, y0, y1 = WORKSPACE_M
         return float(rng.uniform(x0, x1)), float(rng.uniform(y0, y1)), float(rng.uniform(-np.pi, np.pi))
 
+    def forget_contacts(self) -> None:
+        """Delete the contact manifolds of the part before a snapshot is restored: they survive
+        ``restoreState`` and warm-start the solver, so a part put back where it lay in an earlier
+        episode or scene would move differently. Parks the part far above everything and runs
+        collision detection; the caller moves the robot clear first (its own reset pose)."""
+        self.part.set_pose(make_transform(translation=[0.0, 0.0, 50.0]))
+        self.sim.client.performCollisionDetection()
+
     def place_part(self, x: float, y: float, yaw_rad: float) -> None:
         self.part.set_pose(self.lying_pose(x, y, yaw_rad))
 
