@@ -521,6 +521,7 @@ def test_no_permission_for_the_output_is_one_line_before_the_work(command: str, 
     code, _, err = run_cli([a.format(out=workspace.tmp / "locked", data=workspace.data) for a in argv], capsys)
     line = one_error_line(code, err)
     assert str(workspace.tmp) in line and "Permission denied" in line
+    assert not (workspace.tmp / "locked").exists()  # nothing written
 
 
 def test_a_disk_full_after_the_work_is_one_line_and_the_results_are_printed(workspace, monkeypatch, capsys):
@@ -535,6 +536,7 @@ def test_a_disk_full_after_the_work_is_one_line_and_the_results_are_printed(work
     line = one_error_line(code, err)
     assert line == f"don-gym evaluate: error: {out / 'tracking.json'}: No space left on device"
     assert "| oracle |" in stdout  # the table came before the write that failed
+    assert not list(out.rglob("*"))  # the results' first file: nothing partial left
 
 
 def test_a_real_full_disk_is_one_line_naming_the_file(workspace, tmp_path: Path, capsys):
@@ -549,6 +551,7 @@ def test_a_real_full_disk_is_one_line_naming_the_file(workspace, tmp_path: Path,
         line = one_error_line(code, err)
         assert "No space left on device" in line and str(where) in line
         assert sorted(p.name for p in where.iterdir()) == ["filler"]  # no partial file left
+        assert (where / "filler").read_bytes() == b"\xff" * 60_000  # what was there is whole
     finally:
         subprocess.run(["umount", str(where)], check=True)
 
@@ -560,6 +563,7 @@ def test_ctrl_c_is_one_line_with_status_130(workspace, monkeypatch, capsys) -> N
     monkeypatch.setattr("don_gym.evaluation.evaluate_tracking", interrupted)
     code, _, err = run_cli([*workspace.fill(EVAL), "--out", str(workspace.tmp / "o")], capsys)
     assert code == 130 and err == "don-gym evaluate: interrupted\n"
+    assert not (workspace.tmp / "o").exists()  # nothing written
 
 
 def test_error_line_names_the_file_of_an_os_error() -> None:

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from file_snapshots import snapshot
 from safetensors.torch import save_file
 
 from don_gym import __version__
@@ -165,9 +166,11 @@ def test_broken_files(tmp_path, saved) -> None:
         target = tmp_path / name
         if content is not None:
             target.write_bytes(content)
+        before = snapshot(tmp_path)
         with pytest.raises(CheckpointError, match=expected[name]) as info:
             load_checkpoint(target)
         assert str(target) in str(info.value)
+        assert snapshot(tmp_path) == before  # a refused file is left as it was, for the user to look at
     with pytest.raises(CheckpointError, match="not a file"):
         load_checkpoint(tmp_path)
 

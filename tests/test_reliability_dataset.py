@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import dataclasses
 import errno
-import hashlib
 import json
 import os
 import resource
@@ -22,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from file_snapshots import snapshot
 
 from don_gym.build import DatasetConfig, build_dataset
 from don_gym.cli import main
@@ -32,15 +32,6 @@ from don_gym.export import export_scene_pdc
 
 TINY = DatasetConfig(scenes=2, frames_per_scene=2, image_size=(64, 48), fuse_depth=False, seed=5)
 TINY_ARGS = ["--scenes", "2", "--frames", "2", "--size", "64x48", "--no-fusion", "--seed", "5"]
-
-
-def _snapshot(root: Path) -> dict[str, str]:
-    """sha256 of every file under ``root`` (the lock file aside: it holds no data)."""
-    return {
-        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-        for p in sorted(root.rglob("*"))
-        if p.is_file() and p.name != ".lock"
-    }
 
 
 def _leftovers(root: Path) -> list[str]:
@@ -87,7 +78,7 @@ def two_piece_mesh(tmp_path_factory) -> Path:
 
 def test_overwrite_with_a_bad_option_keeps_the_dataset(dataset: Path, two_piece_mesh: Path, capsys) -> None:
     """Every option is checked before --overwrite deletes anything; each refusal is one line."""
-    before = _snapshot(dataset)
+    before = snapshot(dataset)
     bad_options = [
         (["--sensor", "nope"], "nope"),
         (["--dim", "0"], "--dim"),
@@ -103,7 +94,7 @@ def test_overwrite_with_a_bad_option_keeps_the_dataset(dataset: Path, two_piece_
     for option, expected in bad_options:
         code = main(["build-dataset", *TINY_ARGS, *option, "--overwrite", "--out", str(dataset)])
         _assert_one_line_error(code, capsys.readouterr().err, expected)
-        assert _snapshot(dataset) == before, option
+        assert snapshot(dataset) == before, option
 
 
 def test_a_refused_build_leaves_nothing_behind(tmp_path: Path, two_piece_mesh: Path, capsys) -> None:
@@ -123,17 +114,17 @@ def test_a_refused_build_leaves_nothing_behind(tmp_path: Path, two_piece_mesh: P
 def test_newer_or_corrupt_format_version_is_refused(dataset: Path, version, message: str, capsys) -> None:
     info_path = dataset / "dataset.json"
     info_path.write_text(json.dumps({**json.loads(info_path.read_text()), "version": version}))
-    before = _snapshot(dataset)
+    before = snapshot(dataset)
     with pytest.raises(DatasetError, match=message):
         build_dataset(TINY, dataset, progress=False)
     with pytest.raises(DatasetError, match=message):
         DONDataset(dataset)
     _assert_one_line_error(main(["build-dataset", *TINY_ARGS, "--out", str(dataset)]), capsys.readouterr().err, message)
-    assert _snapshot(dataset) == before  # not rewritten as version 1
+    assert snapshot(dataset) == before  # not rewritten as version 1
 
 
 def test_resume_refuses_every_option_that_shapes_the_data(dataset: Path) -> None:
-    before = _snapshot(dataset)
+    before = snapshot(dataset)
     changes = [
         ("fuse_depth", True, "--no-fusion"),
         ("sensor", "ideal", "--sensor"),
@@ -155,7 +146,7 @@ def test_resume_refuses_every_option_that_shapes_the_data(dataset: Path) -> None
             recorded = json.loads((dataset / "dataset.json").read_text())[name]
             asked = list(value) if isinstance(value, tuple) else value
             assert f"{recorded!r} on disk, {asked!r} asked" in message, message
-    assert _snapshot(dataset) == before
+    assert snapshot(dataset) == before
 
 
 def test_fewer_scenes_are_refused_and_more_are_added(dataset: Path) -> None:
@@ -172,7 +163,7 @@ def test_full_disk_leaves_no_incomplete_file_and_keeps_the_dataset(
     dataset: Path, monkeypatch: pytest.MonkeyPatch, capsys
 ) -> None:
     shutil.rmtree(dataset / "scenes" / "scene_000001")
-    before = _snapshot(dataset)
+    before = snapshot(dataset)
     real_replace = os.replace
     writes = []
 
@@ -194,7 +185,7 @@ def test_full_disk_leaves_no_incomplete_file_and_keeps_the_dataset(
     monkeypatch.setattr("cv2.imencode", lambda *args, **kwargs: (False, None))
     with pytest.raises(OSError, match="could not encode PNG"):
         build_dataset(TINY, dataset, progress=False)
-    assert _snapshot(dataset) == before and not _leftovers(dataset)
+    assert snapshot(dataset) == before and not _leftovers(dataset)
     assert not (dataset / "scenes" / "scene_000001").exists()
     monkeypatch.undo()
     assert build_dataset(TINY, dataset, progress=False).scenes_written == 1
@@ -218,6 +209,9 @@ def test_real_file_size_limit_is_a_one_line_error(tmp_path: Path) -> None:
     _assert_one_line_error(result.returncode, result.stderr, "File too large", "rgb/000000.png", "resume")
     assert sorted(p.name for p in out.iterdir()) == [".lock", "dataset.json", "descriptor_field.npz", "scenes"]
     assert not list((out / "scenes").iterdir())
+    # The files written before the fault are whole: the field's hash is the one dataset.json records.
+    info = json.loads((out / "dataset.json").read_text())
+    assert DescriptorField.load(out / "descriptor_field.npz").field_hash == info["descriptor_field_hash"]
 
 
 def test_two_writers_of_different_objects_one_is_refused(tmp_path: Path) -> None:
@@ -253,7 +247,7 @@ def test_shards_in_parallel_equal_one_unsharded_build(reference: Path, tmp_path:
     ]
     for shard in shards:
         assert shard.wait(timeout=300) == 0, shard.stderr.read()
-    sharded, unsharded = _snapshot(out), _snapshot(reference)
+    sharded, unsharded = snapshot(out), snapshot(reference)
     assert sorted(sharded) == sorted(unsharded)
     for name in ("rgb", "depth", "depth_ideal", "descriptor", "target_mask", "mask"):
         assert any(f"/{name}/" in path for path in sharded), name
@@ -285,7 +279,7 @@ def test_killed_build_resumes_to_a_complete_dataset(reference: Path, tmp_path: P
         assert (scene / "scene.json").is_file()
     report = build_dataset(TINY, out, progress=False)
     assert report.scenes_complete == 2 and not _leftovers(out)
-    assert _snapshot(out) == _snapshot(reference)
+    assert snapshot(out) == snapshot(reference)
 
 
 def test_overwrite_is_refused_while_another_process_writes(dataset: Path) -> None:
@@ -296,10 +290,10 @@ def test_overwrite_is_refused_while_another_process_writes(dataset: Path) -> Non
     )  # fmt: skip
     try:
         assert holder.stdout.readline().strip() == "held"
-        before = _snapshot(dataset)
+        before = snapshot(dataset)
         with pytest.raises(DatasetError, match="another don-gym process is writing"):
             build_dataset(TINY, dataset, overwrite=True, progress=False)
-        assert _snapshot(dataset) == before
+        assert snapshot(dataset) == before
         # Writers of the same dataset share it: a resume goes ahead.
         assert build_dataset(TINY, dataset, progress=False).scenes_skipped == 2
     finally:
@@ -314,9 +308,11 @@ def test_export_refuses_a_corrupt_image(dataset: Path, tmp_path: Path, capsys) -
     data = DONDataset(dataset)
     rgb = dataset / "scenes" / "scene_000000" / "rgb" / "000001.png"
     rgb.write_bytes(rgb.read_bytes()[:100])  # truncated, as by a full disk
+    before = snapshot(dataset)
     with pytest.raises(DatasetError, match="000001.png"):
         export_scene_pdc(data, 0, tmp_path / "pdc")
     assert not list((tmp_path / "pdc").rglob("*.png"))  # nothing of the scene was written
+    assert snapshot(dataset) == before
     code = main(["export", str(dataset), "--scene", "0", "--out", str(tmp_path / "pdc")])
     _assert_one_line_error(code, capsys.readouterr().err, "rgb/000001.png", "not a readable PNG")
     # A readable image of the wrong kind (RGB where 16-bit depth belongs) is refused too.
@@ -394,10 +390,10 @@ def test_a_dataset_from_another_machine_resumes_and_another_field_is_refused(
 
     info["descriptor_field_hash"] = _field_as_from_another_machine(field_path, 1e-2)
     info_path.write_text(json.dumps({**info, "scenes": 3}))
-    before = _snapshot(dataset)
+    before = snapshot(dataset)
     code = main(["build-dataset", *TINY_ARGS, "--scenes", "4", "--out", str(dataset)])
     _assert_one_line_error(code, capsys.readouterr().err, "descriptor field", "by 0.01", "tolerance 0.001")
-    assert _snapshot(dataset) == before
+    assert snapshot(dataset) == before
 
     # A field file published by another machine's build that has not written dataset.json yet is joined.
     fresh = tmp_path / "fresh"
@@ -417,10 +413,10 @@ def test_another_parts_field_without_dataset_json_is_refused_like_a_different_da
     out = tmp_path / "ds"
     out.mkdir()
     embed(load_object("shaft"), dim=3, symmetric=True).save(out / "descriptor_field.npz")
-    before = _snapshot(out)
+    before = snapshot(out)
     code = main(["build-dataset", *TINY_ARGS, "--object", "toolcap", "--out", str(out)])
     _assert_one_line_error(code, capsys.readouterr().err, "holds a different dataset", "--object", "no dataset.json")
-    assert _snapshot(out) == before
+    assert snapshot(out) == before
 
 
 def test_another_builds_temporary_files_are_not_foreign(tmp_path: Path) -> None:
@@ -477,5 +473,9 @@ def test_ctrl_c_during_a_build_on_workers_prints_no_traceback(tmp_path: Path, ct
     assert process.returncode == 130, stderr
     assert "Traceback" not in stderr and stderr.rstrip().endswith("don-gym build-dataset: interrupted"), stderr
     assert not _leftovers(out)
+    before = snapshot(out)
     report = build_dataset(DatasetConfig(**{**TINY.__dict__, "scenes": 6}), out, progress=False)
     assert report.scenes_complete == 6 and report.scenes_written < 6 and not _leftovers(out)
+    # Every file complete at Ctrl-C (the scenes finished before it, the dataset's own files) is kept as it was.
+    after = snapshot(out)
+    assert {path: after.get(path) for path in before} == before

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from file_snapshots import snapshot
 
 import don_gym.train as train_module
 from don_gym.augment import AugmentConfig
@@ -185,6 +186,7 @@ def test_out_that_is_a_file_and_failed_writes(tiny_dataset: str, tmp_path: Path,
     (tmp_path / "file").write_text("not a run")
     with pytest.raises(DonGymError, match="is a file"):
         train(_config("supervised", tiny_dataset, tmp_path / "file"), progress=False)
+    assert (tmp_path / "file").read_text() == "not a run"
     config = replace(_config("supervised", tiny_dataset, tmp_path / "run", steps=2), checkpoint_every=1)
 
     def full_disk(*args, **kwargs):
@@ -194,7 +196,7 @@ def test_out_that_is_a_file_and_failed_writes(tiny_dataset: str, tmp_path: Path,
     monkeypatch.setattr(train_module, "save_checkpoint", full_disk)
     with pytest.raises(DonGymError, match="cannot write .*step_000001.safetensors: No space left"):
         train(config, progress=False)
-    assert not (tmp_path / "run" / TRAIN_STATE).exists()
+    assert list(snapshot(tmp_path / "run")) == ["config.json"]  # nothing half-written, no state
     monkeypatch.undo()
 
     # A read-only file system from the start: the CLI prints one line.
@@ -241,15 +243,21 @@ def test_damaged_run_directory_is_one_line(tiny_dataset: str, tmp_path: Path) ->
     more = replace(config, steps=2)
     state = (tmp_path / "run" / TRAIN_STATE).read_bytes()
     (tmp_path / "run" / TRAIN_STATE).write_bytes(state[: len(state) // 2])
+    damaged = snapshot(tmp_path / "run")
     with pytest.raises(DonGymError, match=f"{TRAIN_STATE}: cannot be read"):
         train(more, resume=True, progress=False)
+    assert snapshot(tmp_path / "run") == damaged  # the refusal changed nothing: the checkpoint is still there
     (tmp_path / "run" / TRAIN_STATE).write_bytes(state)
     (tmp_path / "run" / "config.json").write_text("{not json")
+    damaged = snapshot(tmp_path / "run")
     with pytest.raises(DonGymError, match="config.json: cannot be read as JSON"):
         train(more, resume=True, progress=False)
+    assert snapshot(tmp_path / "run") == damaged
     (tmp_path / "run" / "config.json").unlink()
+    damaged = snapshot(tmp_path / "run")
     with pytest.raises(DonGymError, match="config.json: missing"):
         train(more, resume=True, progress=False)
+    assert snapshot(tmp_path / "run") == damaged
 
 
 # --- pretrained weights and the GPU path ---------------------------------------------------------

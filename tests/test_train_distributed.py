@@ -134,8 +134,11 @@ def test_a_process_that_dies_keeps_the_checkpoint_and_torchrun_resumes(
     out = tmp_path / "run"
     outcome = _launch_two(_config(dataset, out, steps=4), die_in_step=3)
     assert 1 not in outcome and "step 3 failed" in outcome[0] and "--resume" in outcome[0], outcome
+    # What was written before the fault is whole: the checkpoint's weights match their own hash on loading,
+    # the state and the losses are those of step 2, the single-process run's to float rounding.
     assert torch.load(out / TRAIN_STATE, weights_only=True)["step"] == 2
     assert load_checkpoint(out / "checkpoints" / "step_000002.safetensors")[1].training_steps == 2
+    np.testing.assert_allclose(_losses(out), _losses(one_process)[:2], rtol=1e-4)
     assert not (out / "model.safetensors").exists() and not list(out.rglob(".*partial*"))
     command = [
         sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
