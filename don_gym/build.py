@@ -31,7 +31,6 @@ from don_gym.dataset import (
     FIELD_FILE,
     FORMAT_NAME,
     FORMAT_VERSION,
-    LOCK_FILE,
     SCENE_FILE,
     DatasetLock,
     check_dataset_identity,
@@ -49,6 +48,7 @@ from don_gym.descriptors import FIELD_MATCH_ATOL, DescriptorField, embed
 from don_gym.errors import DatasetError, DonGymError, SeveralPiecesError
 from don_gym.fusion import fuse_scene, fused_object_masks
 from don_gym.geometry import invert_transform
+from don_gym.io import LOCK_FILE
 from don_gym.objects import ObjectModel, load_object
 from don_gym.render import DescriptorRenderer
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from don_gym.errors import DatasetError
 from don_gym.geometry import CameraIntrinsics
-from don_gym.io import atomic_path, write_png, write_text_atomic
+from don_gym.io import DirectoryLock, atomic_path, write_png, write_text_atomic
 
 if TYPE_CHECKING:  # imported where used, to keep this module light
     from don_gym.descriptors import DescriptorField
@@ -37,7 +37,6 @@ FORMAT_VERSION = 1
 DATASET_FILE = "dataset.json"
 FIELD_FILE = "descriptor_field.npz"
 SCENE_FILE = "scene.json"
-LOCK_FILE = ".lock"
 
 #: Image kinds stored per frame, with their on-disk encoding.
 FRAME_KINDS = ("rgb", "depth", "depth_ideal", "depth_fused", "mask", "mask_fused", "target_mask", "descriptor")
@@ -339,38 +338,20 @@ def _process_alive(pid: int) -> bool:
     return True
 
 
-class DatasetLock:
-    """Advisory locks on ``DIR/.lock`` between the writers of one dataset on one machine.
+class DatasetLock(DirectoryLock):
+    """The writers of one dataset on one machine (:class:`~don_gym.io.DirectoryLock` on ``DIR/.lock``).
 
-    POSIX byte-range locks (``fcntl.lockf``), released by the kernel when a process dies: byte 0
-    is held shared by every writer for its whole run and exclusively by ``--overwrite``; byte 1
+    Byte 0 is held shared by every writer for its whole run and exclusively by ``--overwrite``; byte 1
     exclusively while the dataset-level files are checked or written; byte 2 + k while scene k is
     written. Correctness across machines does not rest on them (files are published by atomic
     create and rename); they keep one machine's writers from racing and repeating each other's work.
-    Use one instance per process: closing any descriptor of the file drops the process's locks on it.
     """
 
     _SESSION, _METADATA, _FIRST_SCENE = 0, 1, 2
 
-    def __init__(self, root: Path) -> None:
-        self.root = Path(root)
-        self._fd: int | None = os.open(self.root / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o666)
-
-    def _lock(self, byte: int, mode: int, blocking: bool = True) -> bool:
-        assert self._fd is not None, "lock used after close()"
-        try:
-            fcntl.lockf(self._fd, mode if blocking else mode | fcntl.LOCK_NB, 1, byte)
-        except OSError as exc:
-            if exc.errno in (errno.EACCES, errno.EAGAIN):
-                return False
-            if exc.errno in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
-                return True  # a file system without locks (some NFS set-ups): atomic publishing still holds
-            raise
-        return True
-
     def hold_session(self, exclusive: bool = False) -> None:
         """Join the writers of this dataset (shared) or, for ``--overwrite``, become the only one."""
-        if self._lock(self._SESSION, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH, blocking=False):
+        if self.lock(self._SESSION, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH, blocking=False):
             return
         if exclusive:
             raise DatasetError(
@@ -383,28 +364,23 @@ class DatasetLock:
 
     def share_session(self) -> None:
         """After ``hold_session(exclusive=True)``: let other writers of the same dataset join."""
-        self._lock(self._SESSION, fcntl.LOCK_SH)
+        self.lock(self._SESSION, fcntl.LOCK_SH)
 
     @contextlib.contextmanager
     def metadata(self) -> Iterator[None]:
-        self._lock(self._METADATA, fcntl.LOCK_EX)
+        self.lock(self._METADATA, fcntl.LOCK_EX)
         try:
             yield
         finally:
-            self._lock(self._METADATA, fcntl.LOCK_UN)
+            self.lock(self._METADATA, fcntl.LOCK_UN)
 
     @contextlib.contextmanager
     def scene(self, scene_index: int) -> Iterator[None]:
-        self._lock(self._FIRST_SCENE + scene_index, fcntl.LOCK_EX)
+        self.lock(self._FIRST_SCENE + scene_index, fcntl.LOCK_EX)
         try:
             yield
         finally:
-            self._lock(self._FIRST_SCENE + scene_index, fcntl.LOCK_UN)
-
-    def close(self) -> None:
-        if self._fd is not None:
-            os.close(self._fd)
-            self._fd = None
+            self.lock(self._FIRST_SCENE + scene_index, fcntl.LOCK_UN)
 
 
 @dataclass(frozen=True)

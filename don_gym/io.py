@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import os
 import tempfile
 from collections.abc import Iterator
@@ -152,3 +153,41 @@ def _check_output(path: str | Path, option: str, directory: bool) -> Path:
     os.close(fd)
     os.unlink(probe)
     return path
+
+
+#: The lock file of a directory that don_gym writes (a dataset, a training run); it holds no data.
+LOCK_FILE = ".lock"
+
+
+class DirectoryLock:
+    """Advisory POSIX byte-range locks (``fcntl.lockf``) on ``DIR/.lock`` between the processes of one machine
+    that write one directory, released by the kernel when a process dies.
+
+    A process never conflicts with its own locks, and closing any descriptor of the file drops all of them:
+    use one instance per process and directory. On a file system without locks (some NFS set-ups) every
+    lock is granted, so callers keep their files correct without them (atomic writes and renames).
+    """
+
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+        self._fd: int | None = os.open(self.root / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o666)
+
+    def lock(self, byte: int, mode: int, blocking: bool = True) -> bool:
+        """Lock byte ``byte`` of the file in ``mode`` (``fcntl.LOCK_SH``, ``LOCK_EX`` or ``LOCK_UN``); False
+        when ``blocking`` is False and another process holds a conflicting lock."""
+        assert self._fd is not None, "lock used after close()"
+        try:
+            fcntl.lockf(self._fd, mode if blocking else mode | fcntl.LOCK_NB, 1, byte)
+        except OSError as exc:
+            if exc.errno in (errno.EACCES, errno.EAGAIN):
+                return False
+            if exc.errno in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
+                return True
+            raise
+        return True
+
+    def close(self) -> None:
+        """Release every lock of this process on the file."""
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None

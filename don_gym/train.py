@@ -5,7 +5,8 @@ contrastive loss (:mod:`don_gym.methods`), with the original DON's optimiser def
 section "Self-supervised DON training"). Every step is seeded with ``(seed, step)``, so a resumed run continues
 the same loss curve. A run directory holds ``config.json``, ``losses.csv`` (one row per step), ``loss_curve.png``,
 ``checkpoints/step_XXXXXX.safetensors`` every ``checkpoint_every`` steps, ``train_state.pt`` (optimiser state for
-``--resume``) and the final ``model.safetensors``.
+``--resume``) and the final ``model.safetensors``. One run writes a run directory at a time: the writing process
+holds the directory's lock (:class:`~don_gym.io.DirectoryLock` on ``.lock``) from before its first write to its end.
 
 Batches come from :class:`~don_gym.torch_data.StepBatches`, built in ``workers`` processes. Under
 ``torchrun`` each process trains on its share of every step's batch with DistributedDataParallel
@@ -16,10 +17,12 @@ mixed precision (bf16, or fp16 with a gradient scaler) in channels-last layout.
 from __future__ import annotations
 
 import csv
+import fcntl
 import hashlib
 import json
 import math
 import re
+import shutil
 import signal
 import threading
 import time
@@ -50,7 +53,7 @@ from don_gym.distributed import (
     synchronize_batchnorm,
 )
 from don_gym.errors import DonGymError
-from don_gym.io import atomic_path, check_output_dir, write_text_atomic
+from don_gym.io import DirectoryLock, atomic_path, check_output_dir, write_text_atomic
 from don_gym.losses import batch_contrastive_loss, supervised_l2_loss
 from don_gym.methods import SUPERVISED_TARGET_VARIANT, is_supervised, validate_method
 from don_gym.model import ARCHS, DEFAULT_ARCH, DenseObjectNet, torch_device, validate_arch, validate_device_name
@@ -367,11 +370,32 @@ class _RunStart:
     rows: list[dict[str, str]] = field(default_factory=list)
 
 
-def _inspect_run_dir(out: Path, config: TrainConfig, identity: str, resume: bool) -> _RunStart:
-    """Read-only: the state to resume from (None: start afresh), or a user error."""
+def _check_run_dir_place(out: Path) -> None:
+    """Read-only: a file in the run directory's place, or a place where nothing can be written, is refused."""
     if out.exists() and not out.is_dir():
         raise DonGymError(f"--out {out}: is a file; expected a run directory (new or to --resume)")
-    check_output_dir(out, "--out")  # a read-only or forbidden place is refused before the work
+    check_output_dir(out, "--out")
+
+
+def _hold_run_dir(out: Path) -> tuple[DirectoryLock, Path | None]:
+    """Create the run directory ``out`` (and missing parents) and take its lock, held for the whole run (and
+    released by the kernel if the process dies): one writer per run directory. Returns the lock and the
+    topmost directory created here (None: ``out`` existed), which a run refused before its first write
+    removes. Another process writing ``out`` is refused in one line."""
+    created = next((path for path in reversed([out, *out.parents]) if not path.exists()), None)
+    out.mkdir(parents=True, exist_ok=True)
+    lock = DirectoryLock(out)
+    if not lock.lock(0, fcntl.LOCK_EX, blocking=False):
+        lock.close()
+        raise DonGymError(
+            f"{out}: another training run is writing this run directory; wait for it to end (then --resume "
+            "continues it), or choose another --out"
+        )
+    return lock, created
+
+
+def _inspect_run_dir(out: Path, config: TrainConfig, identity: str, resume: bool) -> _RunStart:
+    """Read-only, under the run directory's lock: the state to resume from (None: start afresh), or a user error."""
     state_path = out / TRAIN_STATE
     if not state_path.exists():
         # No progress saved (e.g. a run that failed before its first checkpoint): nothing to keep.
@@ -442,10 +466,13 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> T
         torch.cuda.set_device(device)
         torch.backends.cudnn.benchmark = True  # fixed crop sizes: pick the fastest kernels once
     joined = start_process_group(launch, backend, device) if launch.world_size > 1 else False
+    held: list[DirectoryLock] = []  # rank 0's lock on the run directory, from before its first write to the end
     try:
         with _terminate_as_exit():
-            return _train(config, resume, progress, launch, device, amp_dtype, source)
+            return _train(config, resume, progress, launch, device, amp_dtype, source, held)
     finally:
+        for lock in held:
+            lock.close()
         if joined:
             torch.distributed.destroy_process_group()
 
@@ -458,6 +485,7 @@ def _train(
     device: torch.device,
     amp_dtype: torch.dtype | None,
     source: SupervisedFrames | CorrespondencePairs,
+    held: list[DirectoryLock],
 ) -> TrainResult:
     out = Path(config.out)
     info = source.data.info
@@ -475,18 +503,27 @@ def _train(
     scaler = torch.amp.GradScaler(device.type) if amp_dtype == torch.float16 else None
 
     def start() -> _RunStart:
-        """Rank 0: everything that reads the run directory or pretrained weights, then the first write."""
+        """Rank 0: the run directory's lock (kept in ``held`` until the run ends), everything that reads the
+        run directory or pretrained weights, then the first write."""
+        lock, created = None, None
         try:
+            _check_run_dir_place(out)
+            with _writing(out):
+                lock, created = _hold_run_dir(out)
             run = _inspect_run_dir(out, config, identity, resume)
             if run.state is None and config.pretrained_path is not None:
                 # Other processes receive these weights with DistributedDataParallel's first broadcast.
                 model.load_pretrained_encoder(config.pretrained_path)
             with _writing(out / RUN_CONFIG):
-                out.mkdir(parents=True, exist_ok=True)
                 saved = {**asdict(config), DATASET_IDENTITY_KEY: identity}
                 write_text_atomic(out / RUN_CONFIG, json.dumps(saved, indent=1) + "\n")
         except DonGymError as exc:
+            if lock is not None:
+                if created is not None:  # refused before its first write: leave no directory behind
+                    shutil.rmtree(created, ignore_errors=True)
+                lock.close()
             return _RunStart(error=str(exc))
+        held.append(lock)
         return run
 
     run = broadcast_from_main(start() if launch.is_main else None)

@@ -5,7 +5,12 @@ from __future__ import annotations
 import csv
 import errno
 import json
+import os
 import shutil
+import signal
+import subprocess
+import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -213,6 +218,40 @@ def test_out_that_is_a_file_and_failed_writes(tiny_dataset: str, tmp_path: Path,
     assert (tmp_path / "run" / "config.json").is_file()
     train(config, progress=False)
     assert len(_losses(tmp_path / "run")) == 2
+
+
+def test_two_trainings_into_one_run_directory_one_is_refused(tiny_dataset: str, tmp_path: Path) -> None:
+    """A job launched twice: while the first run trains, the same command into its directory is refused in
+    one line naming it, before it writes anything. The lock goes with the first run's process (kill -9),
+    and the directory then trains again."""
+    out = tmp_path / "run"
+    command = [
+        sys.executable, "-m", "don_gym.cli", "train", "--method", "supervised", "--data", tiny_dataset, "--out",
+        str(out), "--steps", "100000", "--checkpoint-every", "100000", "--batch-size", "2", "--crop", "64x48",
+        "--threads", "1",
+    ]  # fmt: skip
+    environment = {**os.environ, "OMP_NUM_THREADS": "1"}
+    first = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=environment)
+    try:
+        deadline = time.monotonic() + 120
+        while not (out / "config.json").exists():  # written under the lock
+            assert first.poll() is None and time.monotonic() < deadline, "the first run never started"
+            time.sleep(0.05)
+        first.send_signal(signal.SIGSTOP)  # mid-run, holding the lock, off the CPU the others need
+        before = snapshot(out)
+        second = subprocess.run(command, capture_output=True, text=True, timeout=120, env=environment)
+        lines = second.stderr.strip().splitlines()
+        assert second.returncode == 2 and len(lines) == 1 and "Traceback" not in second.stderr, second.stderr
+        assert f"{out}: another training run is writing this run directory" in lines[0], lines[0]
+        with pytest.raises(DonGymError, match="another training run is writing"):  # --resume alike
+            train(_config("supervised", tiny_dataset, out, steps=2), resume=True, progress=False)
+        assert snapshot(out) == before
+        assert first.poll() is None  # the two overlapped
+    finally:
+        first.kill()
+        first.wait()
+    train(_config("supervised", tiny_dataset, out, steps=2), progress=False)
+    assert len(_losses(out)) == 2
 
 
 def test_loss_that_becomes_nan_is_one_line(tiny_dataset: str, tmp_path: Path, monkeypatch) -> None:
