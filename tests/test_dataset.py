@@ -61,9 +61,13 @@ def test_recording_is_deterministic_and_complete(toolcap) -> None:
     # d435 has a hand-eye calibration error: reported and true poses differ by mm, not cm.
     offset = np.linalg.norm(frame.T_world_camera_reported[:3, 3] - frame.T_world_camera[:3, 3])
     assert 0.0 < offset < 0.02
-    # Camera poses are varied, and the object is seen in most frames.
+    # Camera poses are varied, and every frame shows the part, which the cameras look at (14 to 72 of the
+    # 3072 pixels in 27 frames of 9 seeds), with depth on some of it.
     positions = np.stack([f.T_world_camera[:3, 3] for f in first.frames])
     assert np.ptp(positions, axis=0).max() > 0.05
+    seen = [int(f.object_mask.sum()) for f in first.frames]
+    assert min(seen) >= 10, seen
+    assert all((f.depth_m[f.object_mask] > 0).any() for f in first.frames)
 
 
 def test_a_scene_does_not_depend_on_the_scene_recorded_before_it() -> None:

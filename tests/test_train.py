@@ -135,9 +135,28 @@ def test_a_steps_batch_depends_only_on_seed_and_step(tiny_dataset: str) -> None:
 def test_workers_train_the_same_curve(tiny_dataset: str, tmp_path: Path) -> None:
     config = replace(_config("supervised-mask", tiny_dataset, tmp_path / "w0", steps=3), checkpoint_every=3)
     train(config, progress=False)
-    result = train(replace(config, out=str(tmp_path / "w2"), workers=2), progress=False)
+    train(replace(config, out=str(tmp_path / "w2"), workers=2), progress=False)
     np.testing.assert_array_equal(_losses(tmp_path / "w0"), _losses(tmp_path / "w2"))
-    assert result.data_wait_fraction is not None and 0.0 <= result.data_wait_fraction < 1.0
+
+
+def test_data_wait_fraction_is_the_share_of_step_time_spent_waiting_for_batches(
+    tiny_dataset: str, tmp_path: Path, monkeypatch
+) -> None:
+    """A loader slowed by 0.5 s a batch: the two steps after the first wait at least 1 s, so the fraction is at
+    least 1 s over the whole session's time, and above the same run's without the delay."""
+    config = replace(_config("supervised-edge", tiny_dataset, tmp_path / "fast", steps=3), checkpoint_every=3)
+    fast = train(config, progress=False)
+    batch = StepBatches.__getitem__
+
+    def slow_batch(self, step):
+        time.sleep(0.5)
+        return batch(self, step)
+
+    monkeypatch.setattr(StepBatches, "__getitem__", slow_batch)
+    slow = train(replace(config, out=str(tmp_path / "slow")), progress=False)
+    assert fast.data_wait_fraction is not None and slow.data_wait_fraction is not None and slow.seconds is not None
+    assert 1.0 / slow.seconds <= slow.data_wait_fraction < 1.0, (slow.data_wait_fraction, slow.seconds)
+    assert slow.data_wait_fraction > fast.data_wait_fraction
 
 
 # --- configuration and run-directory errors ----------------------------------------------------
