@@ -1,13 +1,13 @@
 """Reproduce the networks shipped in don_gym/shipped from scratch, and record the run.
 
 For each object (toolcap, shaft): build a dataset (640x480, d435 sensor, seed 0; 64 scenes of the toolcap,
-128 of the shaft, 6 frames each, wide backdrops, 4 distractors, random light), train one network per method (``resnet-lite``, ``resnet-lite-fine`` for supervised-mask;
-object-centred crops: 128x128 for the toolcap, 256x192 for the shaft; fixed seed), copy its final weights to
-``don_gym/shipped/<object>/<method>.safetensors`` and record its training time, images/s and final loss in
-benchmarks/RESULTS.md, one section per object (``shipped-<object>``). Each row names the scenes, steps and
-commit its network was made with; a run of some methods (``--methods``) keeps the rows of the object's other
-shipped networks, so the table always describes what is shipped. Every network of an object is trained on the
-same scenes.
+128 of the shaft, 6 frames each, wide backdrops, 4 distractors, random light), train one network per method
+(``resnet-lite``, ``resnet-lite-fine`` for supervised-mask; object-centred crops: 128x128 for the toolcap,
+256x192 for the shaft; fixed seed), copy its final weights to ``don_gym/shipped/<object>/<method>.safetensors``
+and record its training time, images/s and final loss in benchmarks/RESULTS.md, one section per object
+(``shipped-<object>``). Each row names the scenes, their data, steps and commit its network was made with; a
+run of some methods (``--methods``) keeps the rows of the object's other shipped networks, so the table always
+describes what is shipped. Every network of an object is trained on the same scenes.
 
     python benchmarks/train_shipped.py            # the shipped recipe
     python benchmarks/train_shipped.py --quick    # a smoke run into a temp dir (no copy)
@@ -58,7 +58,7 @@ VARIETY = {"backgrounds": "wide", "distractors": 4, "lighting": "random"}
 # decoder of resnet-lite-fine resolves the silhouette at stride 2.
 ARCH = {"supervised-edge": "resnet-lite", "supervised-mask": "resnet-lite-fine", "self-supervised": "resnet-lite"}
 TABLE_COLUMNS = (
-    "object", "method", "arch", "scenes", "steps", "minutes", "images/s", "final loss", "MB", "commit"
+    "object", "method", "arch", "scenes", "data", "steps", "minutes", "images/s", "final loss", "MB", "commit"
 )  # fmt: skip
 
 
@@ -175,6 +175,7 @@ def main() -> None:
                 "method": method,
                 "arch": archs[method],
                 "scenes": str(scenes[object_name]),
+                "data": data_description(args.frames, args.backgrounds, args.distractors, args.lighting),
                 "steps": str(args.steps),
                 "minutes": "n/a" if result.seconds is None else f"{result.seconds / 60:.1f}",
                 "images/s": "n/a" if result.images_per_second is None else f"{result.images_per_second:.1f}",
@@ -199,8 +200,9 @@ def main() -> None:
             {**kept, **rows[object_name]}.values(),
             key=lambda row: METHODS.index(row["method"]) if row["method"] in METHODS else len(METHODS),
         )
-        body = f"""Datasets: the table's scenes x {args.frames} frames, {width}x{height}, sensor `d435`, TinyRenderer,
-seed 0, backdrops `{args.backgrounds}`, {args.distractors} distractors, lighting `{args.lighting}`. Training: the row's network arch, batch {args.batch_size} (images, or image pairs for self-supervised),
+        body = f"""Datasets: the row's scenes, each of the frames and variety its data column names (backdrop families,
+distractors, light: docs/background.md, "Training data"), {width}x{height}, sensor `d435`, TinyRenderer, seed 0.
+Training: the row's network arch, batch {args.batch_size} (images, or image pairs for self-supervised),
 {crop_width}x{crop_height} object-centred crops, Adam lr 1e-3 x0.9 every 250 steps, seed 0, {args.threads} torch
 thread(s), {args.workers} loader worker(s). Final loss = mean of the last 5% of steps (the two methods' losses
 are on different scales and not comparable with each other). Minutes and images/s add up every session of a
@@ -217,6 +219,15 @@ still the shipped one.
     if shipped:
         # The manifest of tests/test_shipped_fresh.py: these networks are made with the current sources.
         record_regenerated(shipped)
+
+
+def data_description(frames: int, backgrounds: str, distractors: int, lighting: str) -> str:
+    """A row's training data in a few words, e.g. ``6 frames/scene, wide backdrops, 4 distractors, random light``."""
+    parts = [f"{frames} frames/scene", f"{backgrounds} backdrops"]
+    if distractors:
+        parts.append(f"{distractors} distractors")
+    parts.append(f"{lighting} light")
+    return ", ".join(parts)
 
 
 def recorded_rows(section: str, path: Path = RESULTS_PATH) -> dict[str, dict[str, str]]:
@@ -238,6 +249,10 @@ def recorded_rows(section: str, path: Path = RESULTS_PATH) -> dict[str, dict[str
             continue
         network = SHIPPED_DIR / row["object"] / f"{row['method']}.safetensors"
         metadata = read_checkpoint_metadata(network) if network.is_file() else None
+        if "data" not in row:
+            # Rows recorded before the data column: networks trained before the variety options existed.
+            frames = None if metadata is None else metadata.extra.get("dataset_frames_per_scene")
+            row["data"] = "n/a" if frames is None else data_description(int(frames), "classic", 0, "fixed")
         if "scenes" not in row:
             scenes = None if metadata is None else metadata.extra.get("dataset_scenes")
             row["scenes"] = "n/a" if scenes is None else str(scenes)

@@ -105,7 +105,7 @@ class DatasetConfig:
         if not (_is_number(self.voxel_size_m) and 0 < self.voxel_size_m < 0.1):
             raise DatasetError(f"voxel_size_m={self.voxel_size_m!r}: expected a voxel edge in metres, in (0, 0.1)")
         from don_gym.sim.backdrop import BACKDROP_SETS
-        from don_gym.sim.recorder import LIGHTING_MODES
+        from don_gym.sim.camera import LIGHTING_MODES
 
         if self.backgrounds not in BACKDROP_SETS:
             raise DatasetError(

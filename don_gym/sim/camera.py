@@ -11,7 +11,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import pybullet as p
 from scipy.spatial.transform import Rotation
 
 from don_gym.errors import DonGymError
@@ -63,6 +62,16 @@ class Lighting:
             "lightSpecularCoeff": float(self.specular),
             "shadow": int(self.shadow),
         }
+
+
+#: Lighting modes of recorded scenes: one fixed light, or :func:`random_lighting` per scene.
+LIGHTING_MODES = ("fixed", "random")
+
+
+def check_lighting_mode(lighting: str) -> str:
+    if lighting not in LIGHTING_MODES:
+        raise DonGymError(f"lighting={lighting!r}: expected one of {list(LIGHTING_MODES)}")
+    return lighting
 
 
 def random_lighting(rng: np.random.Generator) -> Lighting:
@@ -181,6 +190,8 @@ def render_camera(
         ``ER_SEGMENTATION_MASK_OBJECT_AND_LINKINDEX``: -1 for background, otherwise
         ``body_id + ((link_index + 1) << 24)`` (see :func:`decode_segmentation`).
     """
+    import pybullet as p  # here, so that the option checks above can be imported without PyBullet
+
     check_renderer(renderer)
     W, H = intrinsics.width, intrinsics.height
     _, _, rgba, zbuffer, seg = client.getCameraImage(

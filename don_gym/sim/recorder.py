@@ -17,7 +17,14 @@ from don_gym.geometry import CameraIntrinsics, invert_transform, rotation_angle_
 from don_gym.objects import ObjectModel
 from don_gym.sim.backdrop import BACKDROP_SETS, Backdrop, check_backdrop_set
 from don_gym.sim.bullet import Bullet
-from don_gym.sim.camera import body_mask, look_at_camera_pose, random_lighting, render_camera, specular_map
+from don_gym.sim.camera import (
+    body_mask,
+    check_lighting_mode,
+    look_at_camera_pose,
+    random_lighting,
+    render_camera,
+    specular_map,
+)
 from don_gym.sim.distractors import Distractors
 from don_gym.sim.robot import ARM_HOME_RAD, ARM_JOINTS, ARM_LOWER_RAD, ARM_UPPER_RAD, HAND_LINK, T_HAND_CAMERA, Panda
 from don_gym.sim.sensor import get_sensor, sample_calibration_error, simulate_depth
@@ -31,8 +38,6 @@ LOOK_AT_OFFSET_M = 0.06
 #: A pose is used when the arm reaches it within these tolerances.
 REACH_POSITION_TOLERANCE_M = 0.01
 REACH_ROTATION_TOLERANCE_RAD = np.deg2rad(5.0)
-#: Lighting modes of :class:`SceneRecorder`.
-LIGHTING_MODES = ("fixed", "random")
 #: Second random stream of a scene's seed: lighting and distractors.
 VARIETY_STREAM = 1
 #: Rounds of IK re-solving from the previous solution.
@@ -58,12 +63,6 @@ class RecordedScene:
     table_height_m: float
     frames: list[RecordedFrame] = field(default_factory=list)
     background: dict[str, Any] = field(default_factory=dict)
-
-
-def check_lighting_mode(lighting: str) -> str:
-    if lighting not in LIGHTING_MODES:
-        raise DonGymError(f"lighting={lighting!r}: expected one of {list(LIGHTING_MODES)}")
-    return lighting
 
 
 class SceneRecorder:
