@@ -107,6 +107,9 @@ def main() -> None:
     )
     parser.add_argument("--steps", type=int, default=6000)
     parser.add_argument(
+        "--background-crops", type=float, default=0.1, help="share of crops placed anywhere in the frame (TrainConfig)"
+    )
+    parser.add_argument(
         "--arch", choices=sorted(ARCHS), default=None, help="network arch of every method (default: per method, ARCH)"
     )
     parser.add_argument("--batch-size", type=int, default=8)
@@ -164,6 +167,7 @@ def main() -> None:
                     batch_size=args.batch_size,
                     seed=0,
                     crop_size=crops[object_name],
+                    background_crop_probability=args.background_crops,
                     threads=args.threads,
                     workers=args.workers,
                     checkpoint_every=max(1, args.steps // 4),

@@ -83,7 +83,9 @@ DATASET_IDENTITY_KEY = "dataset_identity"
 class TrainConfig:
     """One training run. ``lr`` None picks 1e-4 (paper) for ImageNet-layout ResNets and
     1e-3 for the from-scratch ``resnet-lite`` archs. ``crop_size`` (width, height) trains on
-    object-centred random crops (None: whole frames); the network still runs on whole frames.
+    object-centred random crops (None: whole frames); the network still runs on whole frames, so
+    ``background_crop_probability`` of the crops are placed anywhere in the frame instead, showing
+    it backgrounds far from the part and the frame's borders.
     ``threads`` sets torch's CPU threads (None: torch's default); on a machine whose cores
     are shared with other work, 1 thread avoids OpenMP stalls that slow a step several-fold (benchmarks/RESULTS.md,
     section ``train-threads``).
@@ -113,6 +115,7 @@ class TrainConfig:
     background_margin: float = 2.5
     device: str = "auto"
     crop_size: tuple[int, int] | None = (160, 120)
+    background_crop_probability: float = 0.1
     threads: int | None = None
     augment: dict[str, float] = field(default_factory=lambda: asdict(AugmentConfig()))
     workers: int = 0
@@ -170,6 +173,7 @@ def validate_config(config: TrainConfig) -> None:
         _real(config, "lr", 0.0, 1.0, low_open=True)  # Adam steps beyond 1 only diverge
     _real(config, "weight_decay", 0.0, 1.0)
     _real(config, "lr_decay", 0.0, 1.0, low_open=True)
+    _real(config, "background_crop_probability", 0.0, 1.0)
     _real(config, "object_margin", 0.0, 1e6)
     _real(config, "background_margin", 0.0, 1e6)
     if config.depth_source not in DEPTH_SOURCES:
@@ -342,6 +346,7 @@ def checkpoint_metadata(
             "lr": config.learning_rate(),
             "batch_size": config.batch_size,
             "crop_size": list(config.crop_size) if config.crop_size else None,
+            "background_crop_probability": config.background_crop_probability,
             "dataset_scenes": int(dataset_info["scenes"]),
             "dataset_frames_per_scene": int(dataset_info["frames_per_scene"]),
             "dataset_seed": int(dataset_info["seed"]),
@@ -414,9 +419,19 @@ def _inspect_run_dir(out: Path, config: TrainConfig, identity: str, resume: bool
 def _open_source(config: TrainConfig) -> SupervisedFrames | CorrespondencePairs:
     if is_supervised(config.method):
         variant = SUPERVISED_TARGET_VARIANT[config.method]
-        return SupervisedFrames(config.data, variant=variant, crop_size=config.crop_size, seed=config.seed)
+        return SupervisedFrames(
+            config.data,
+            variant=variant,
+            crop_size=config.crop_size,
+            seed=config.seed,
+            background_crop_probability=config.background_crop_probability,
+        )
     return CorrespondencePairs(
-        config.data, depth_source=config.depth_source, seed=config.seed, crop_size=config.crop_size
+        config.data,
+        depth_source=config.depth_source,
+        seed=config.seed,
+        crop_size=config.crop_size,
+        background_crop_probability=config.background_crop_probability,
     )
 
 

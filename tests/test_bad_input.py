@@ -161,6 +161,7 @@ CLI_CASES: dict[str, Cli] = {
     "build scenes 0": cli(*BUILD, "--scenes", "0", says="--scenes"),
     "build frames 1": cli(*BUILD, "--frames", "1", says="--frames"),
     "build size 0x0": cli(*BUILD, "--size", "0x0", says="--size"),
+    "build distractors negative": cli(*BUILD, "--distractors", "-1", says="--distractors"),
     "build unknown sensor": cli(*BUILD, "--sensor", "lidar", says="'lidar'"),
     "build missing mesh": cli(*BUILD, "--object", "{tmp}/missing.stl", says="missing.stl"),
     "build object scale NaN": cli(*BUILD, "--object-scale", "nan", says="--object-scale"),
@@ -178,6 +179,9 @@ CLI_CASES: dict[str, Cli] = {
     "train device tpu": cli(*TRAIN, "--out", "{tmp}/run", "--device", "tpu", says="tpu"),
     "train workers negative": cli(*TRAIN, "--out", "{tmp}/run", "--workers", "-1", says="workers"),
     "train crop 0x0": cli(*TRAIN, "--out", "{tmp}/run", "--crop", "0x0", says="--crop"),
+    "train background crops 1.5": cli(
+        *TRAIN, "--out", "{tmp}/run", "--background-crops", "1.5", says="background_crop_probability"
+    ),
     "train unknown arch": cli(*TRAIN, "--out", "{tmp}/run", "--arch", "resnet1000", says="resnet1000"),
     "train unknown method": cli("train", "--method", "magic", "--data", "{data}", "--out", "{tmp}/run", says="magic"),
     "train missing data": cli(

@@ -56,6 +56,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="train on object-centred random crops WIDTHxHEIGHT ('none': whole frames); inference uses whole frames",
     )
     parser.add_argument(
+        "--background-crops",
+        type=float,
+        default=0.1,
+        help="share of training crops placed anywhere in the frame rather than on the part (backgrounds far from "
+        "it and the frame's borders, which whole-frame inference sees)",
+    )
+    parser.add_argument(
         "--threads",
         type=int,
         default=None,
@@ -109,6 +116,7 @@ def run(args: argparse.Namespace) -> int:
         depth_source=args.depth_source,
         device=args.device,
         crop_size=_crop(args.crop),
+        background_crop_probability=args.background_crops,
         threads=args.threads,
         workers=args.workers,
         precision=args.precision,
