@@ -9,6 +9,9 @@ from pathlib import Path
 
 import pytest
 
+from don_gym.checkpoints import read_checkpoint_metadata
+from don_gym.zoo import SHIPPED_DIR
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import _results  # noqa: E402
@@ -126,17 +129,24 @@ def test_shipped_table_keeps_the_rows_of_networks_not_retrained(tmp_path: Path) 
     assert rows == {
         "not-shipped": {
             "object": "shaft", "method": "not-shipped", "steps": "6000", "minutes": "80.8", "images/s": "9.9",
-            "final loss": "0.067", "MB": "2.5", "scenes": "n/a", "arch": "n/a", "commit": commit,
+            "final loss": "0.067", "MB": "2.5", "scenes": "n/a", "arch": "n/a", "commit": commit, "data": "n/a",
         }
     }  # fmt: skip
     current = "| " + " | ".join(train_shipped.TABLE_COLUMNS) + " |\n|" + "---|" * len(train_shipped.TABLE_COLUMNS)
-    current += "\n| shaft | supervised-edge | resnet-lite | 32 | 6000 | 40.0 | 20.0 | 0.05 | 2.6 | abc1234 |\n"
+    data = "6 frames/scene, wide backdrops"
+    current += f"\n| shaft | supervised-edge | resnet-lite | 32 | {data} | 6000 | 40.0 | 20.0 | 0.05 | 2.6 | abc1234 |"
     _results.record_section("shipped-shaft", "S", current, path=results)
     row = train_shipped.recorded_rows("shipped-shaft", path=results)["supervised-edge"]
     assert (row["arch"], row["scenes"], row["commit"], row["minutes"]) == ("resnet-lite", "32", "abc1234", "40.0")
+    assert row["data"] == data
     # A row of the older layout for a shipped network takes its arch from the network's metadata.
     _results.record_section("shipped-shaft", "S", old.replace("not-shipped", "supervised-mask"), path=results)
-    assert train_shipped.recorded_rows("shipped-shaft", path=results)["supervised-mask"]["arch"] == "resnet-lite-fine"
+    mask = train_shipped.recorded_rows("shipped-shaft", path=results)["supervised-mask"]
+    assert mask["arch"] == "resnet-lite-fine"
+    # ... and its data from the metadata's frames per scene: networks of that layout saw the classic scenes.
+    metadata = read_checkpoint_metadata(SHIPPED_DIR / "shaft" / "supervised-mask.safetensors")
+    frames = metadata.extra["dataset_frames_per_scene"]
+    assert mask["data"] == f"{frames} frames/scene, classic backdrops, fixed light"
     assert train_shipped.recorded_rows("shipped-toolcap", path=results) == {}
 
 
