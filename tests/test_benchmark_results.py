@@ -130,15 +130,16 @@ def test_shipped_table_keeps_the_rows_of_networks_not_retrained(tmp_path: Path) 
         "not-shipped": {
             "object": "shaft", "method": "not-shipped", "steps": "6000", "minutes": "80.8", "images/s": "9.9",
             "final loss": "0.067", "MB": "2.5", "scenes": "n/a", "arch": "n/a", "commit": commit, "data": "n/a",
+            "bg crops": "n/a",
         }
     }  # fmt: skip
     current = "| " + " | ".join(train_shipped.TABLE_COLUMNS) + " |\n|" + "---|" * len(train_shipped.TABLE_COLUMNS)
     data = "6 frames/scene, wide backdrops"
-    current += f"\n| shaft | supervised-edge | resnet-lite | 32 | {data} | 6000 | 40.0 | 20.0 | 0.05 | 2.6 | abc1234 |"
+    current += f"\n| shaft | supervised-edge | resnet-lite | 32 | {data} | 0.5 | 6000 | 40.0 | 20.0 | 0.05 | 2.6 | abc |"
     _results.record_section("shipped-shaft", "S", current, path=results)
     row = train_shipped.recorded_rows("shipped-shaft", path=results)["supervised-edge"]
-    assert (row["arch"], row["scenes"], row["commit"], row["minutes"]) == ("resnet-lite", "32", "abc1234", "40.0")
-    assert row["data"] == data
+    assert (row["arch"], row["scenes"], row["commit"], row["minutes"]) == ("resnet-lite", "32", "abc", "40.0")
+    assert (row["data"], row["bg crops"]) == (data, "0.5")
     # A row of the older layout for a shipped network takes its arch from the network's metadata.
     _results.record_section("shipped-shaft", "S", old.replace("not-shipped", "supervised-mask"), path=results)
     mask = train_shipped.recorded_rows("shipped-shaft", path=results)["supervised-mask"]
