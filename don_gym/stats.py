@@ -32,6 +32,11 @@ BOOTSTRAP_RESAMPLES = 2000
 _BLOCK = 128
 
 
+def _check_confidence(confidence: float) -> None:
+    if not 0.0 < confidence < 1.0:
+        raise DonGymError(f"confidence={confidence!r}: expected a level in (0, 1), e.g. 0.95")
+
+
 def wilson_interval(successes: int, trials: int, confidence: float = DEFAULT_CONFIDENCE) -> tuple[float, float]:
     """(low, high) Wilson score interval of the success probability after ``successes`` out of ``trials``.
 
@@ -41,8 +46,7 @@ def wilson_interval(successes: int, trials: int, confidence: float = DEFAULT_CON
         raise DonGymError(f"successes={successes!r}, trials={trials!r}: expected integer counts")
     if not 0 <= successes <= trials:
         raise DonGymError(f"successes={successes}, trials={trials}: expected 0 <= successes <= trials")
-    if not 0.0 < confidence < 1.0:
-        raise DonGymError(f"confidence={confidence!r}: expected a level in (0, 1), e.g. 0.95")
+    _check_confidence(confidence)
     if trials == 0:
         return 0.0, 1.0
     z = NormalDist().inv_cdf(0.5 + confidence / 2.0)
@@ -63,11 +67,6 @@ def format_interval(successes: int, trials: int, confidence: float = DEFAULT_CON
 def format_rate(successes: int, trials: int, confidence: float = DEFAULT_CONFIDENCE) -> str:
     """``"22/24 (74-98%)"``: the count and its Wilson interval in whole percent."""
     return f"{successes}/{trials} ({format_interval(successes, trials, confidence)})"
-
-
-def _check_confidence(confidence: float) -> None:
-    if not 0.0 < confidence < 1.0:
-        raise DonGymError(f"confidence={confidence!r}: expected a level in (0, 1), e.g. 0.95")
 
 
 def scene_resample_counts(n_scenes: int, resamples: int = BOOTSTRAP_RESAMPLES, seed: int = 0) -> np.ndarray:
@@ -160,6 +159,14 @@ def percentile_interval(replicates: np.ndarray, confidence: float = DEFAULT_CONF
     return np.moveaxis(bounds, 0, -1)
 
 
+def _label_resample_counts(scene: np.ndarray, resamples: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Any hashable scene labels (M,) as indices into their sorted unique values, and the resample counts of
+    those scenes (:func:`scene_resample_counts`; one empty scene when there are no labels)."""
+    labels, scene_index = np.unique(np.asarray(scene), return_inverse=True)
+    counts = scene_resample_counts(len(labels), resamples, seed) if len(labels) else np.zeros((resamples, 1), int)
+    return scene_index.reshape(-1), counts
+
+
 def scene_bootstrap_percentiles(
     values: np.ndarray,
     scene: np.ndarray,
@@ -171,10 +178,8 @@ def scene_bootstrap_percentiles(
     """(Q, 2) bootstrap intervals of the percentiles ``q`` of ``values`` (M,), resampling the groups given by
     ``scene`` (M,), any hashable labels, e.g. scene indices: the unit drawn is the scene, not the value.
     Non-finite values are left out; seeded, so the same call gives the same intervals."""
-    labels, scene_index = np.unique(np.asarray(scene), return_inverse=True)
-    counts = scene_resample_counts(len(labels), resamples, seed) if len(labels) else np.zeros((resamples, 1), int)
-    replicates = resampled_percentiles(values, scene_index.reshape(-1), counts, q)
-    return percentile_interval(replicates, confidence)
+    scene_index, counts = _label_resample_counts(scene, resamples, seed)
+    return percentile_interval(resampled_percentiles(values, scene_index, counts, q), confidence)
 
 
 def scene_bootstrap_mean(
@@ -186,9 +191,8 @@ def scene_bootstrap_mean(
 ) -> np.ndarray:
     """(2,) bootstrap interval of the mean of the finite ``values`` (a share, for 0/1 values), resampling
     the groups given by ``scene`` as :func:`scene_bootstrap_percentiles` does."""
-    labels, scene_index = np.unique(np.asarray(scene), return_inverse=True)
-    counts = scene_resample_counts(len(labels), resamples, seed) if len(labels) else np.zeros((resamples, 1), int)
-    return percentile_interval(resampled_means(values, scene_index.reshape(-1), counts), confidence)
+    scene_index, counts = _label_resample_counts(scene, resamples, seed)
+    return percentile_interval(resampled_means(values, scene_index, counts), confidence)
 
 
 def format_estimate(value: float | None, interval: Sequence[float] | None = None, digits: int = 1) -> str:
