@@ -44,6 +44,25 @@ def test_every_backdrop_family_draws_a_reproducible_texture() -> None:
         check_backdrop_set("gaudy")
 
 
+@pytest.mark.parametrize(
+    ("options", "says"),
+    [
+        ({"backgrounds": "gaudy"}, "backgrounds"),
+        ({"lighting": "disco"}, "lighting"),
+        ({"distractors": -1}, "distractors"),
+    ],
+)
+def test_a_recorder_with_a_bad_option_is_refused_before_it_opens_a_client(shaft, options, says, monkeypatch) -> None:
+    import don_gym.sim.recorder as recorder_module
+
+    def no_client(*args, **kwargs):
+        raise AssertionError("a PyBullet client was opened before the options were checked")
+
+    monkeypatch.setattr(recorder_module, "Bullet", no_client)
+    with pytest.raises(DonGymError, match=says):
+        SceneRecorder(shaft, (64, 48), **options)
+
+
 def test_the_default_light_is_the_renderers_default(shaft) -> None:
     with SceneRecorder(shaft, (64, 48)) as recorder:
         frame = recorder.record(seed=1, num_frames=1).frames[0]

@@ -30,6 +30,13 @@ _SHAPES = ("box", "cylinder", "sphere", "capsule", "rod")
 _MAX_PLACEMENT_TRIES = 200
 
 
+def check_distractor_count(count: int) -> int:
+    """``count`` as an int; DonGymError unless it is an integer >= 0."""
+    if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 0:
+        raise DonGymError(f"distractors={count!r}: expected an integer >= 0")
+    return int(count)
+
+
 def _random_shape(rng: np.random.Generator) -> dict[str, Any]:
     """Shape parameters (metres): a box, an upright cylinder, a sphere, a lying capsule or a lying rod
     (a thin cylinder of a part's proportions)."""
@@ -67,10 +74,8 @@ class Distractors:
     """
 
     def __init__(self, sim: Bullet, count: int, shape_seed: int = 0) -> None:
-        if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 0:
-            raise DonGymError(f"distractors={count!r}: expected an integer >= 0")
         self.sim = sim
-        self.count = int(count)
+        self.count = check_distractor_count(count)
         shape_rng = np.random.default_rng(shape_seed)
         self.shapes = [_random_shape(shape_rng) for _ in range(self.count * POOL_PER_DISTRACTOR)]
         self.body_ids = [self._create(i, shape) for i, shape in enumerate(self.shapes)]

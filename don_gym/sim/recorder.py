@@ -25,7 +25,7 @@ from don_gym.sim.camera import (
     render_camera,
     specular_map,
 )
-from don_gym.sim.distractors import Distractors
+from don_gym.sim.distractors import Distractors, check_distractor_count
 from don_gym.sim.robot import ARM_HOME_RAD, ARM_JOINTS, ARM_LOWER_RAD, ARM_UPPER_RAD, HAND_LINK, T_HAND_CAMERA, Panda
 from don_gym.sim.sensor import get_sensor, sample_calibration_error, simulate_depth
 from don_gym.sim.task import TABLE_TOP_Z_M, PickPlaceTask
@@ -109,13 +109,15 @@ class SceneRecorder:
         self.model = model
         self.sensor = get_sensor(sensor)
         self.intrinsics = CameraIntrinsics.d435(*image_size)
+        # Every option is checked before the PyBullet client exists: a refused recorder leaves nothing open.
+        self.backdrop_families = check_backdrop_set(backgrounds)
+        self.lighting_mode = check_lighting_mode(lighting)
+        distractor_count = check_distractor_count(distractors)
         self.sim = Bullet(renderer=renderer)
         self.robot = Panda(self.sim)
         self.task = PickPlaceTask(self.sim, model)
-        self.backdrop_families = check_backdrop_set(backgrounds)
         self.backdrop = Backdrop(self.sim, cradle_id=self.task.cradle_id)
-        self.distractors = Distractors(self.sim, distractors)
-        self.lighting_mode = check_lighting_mode(lighting)
+        self.distractors = Distractors(self.sim, distractor_count)
         self.sim.take_snapshot()
 
     @property
