@@ -16,16 +16,16 @@ from __future__ import annotations
 
 import tempfile
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import cv2
 import numpy as np
+import pybullet as p
 
 from don_gym.errors import DonGymError
 from don_gym.io import write_png
-
-if TYPE_CHECKING:  # PyBullet is imported where a backdrop is built: the dataset builder checks options without it
-    from don_gym.sim.bullet import Bullet
+from don_gym.sim.bullet import Bullet
+from don_gym.sim.task import TABLE_BOUNDS_M, TABLE_TOP_Z_M
 
 #: Texture families by set name; the first three are the recorder's originals, in their original order.
 BACKDROP_SETS: dict[str, tuple[str, ...]] = {
@@ -115,8 +115,6 @@ class Backdrop:
         self.cradle_id = cradle_id
         self._texture_dir = tempfile.TemporaryDirectory(prefix="don_gym_textures_")
         self._texture_count = 0
-        from don_gym.sim.task import TABLE_BOUNDS_M, TABLE_TOP_Z_M
-
         x0, x1, y0, y1 = TABLE_BOUNDS_M
         self.table_surface_id = self._add_quad("table_surface", (x0, x1, y0, y1), TABLE_TOP_Z_M + 0.0002, repeats=3)
         self.floor_id = self._add_quad("floor", (-2.0, 3.0, -2.5, 2.5), FLOOR_Z_M, repeats=6)
@@ -126,8 +124,6 @@ class Backdrop:
     ) -> int:
         """A textured horizontal rectangle, split into ``cells`` x ``cells`` squares because
         TinyRenderer maps textures affinely per triangle (large triangles warp visibly)."""
-        import pybullet as p
-
         x0, x1, y0, y1 = bounds_xy
         t = np.linspace(0.0, 1.0, cells + 1)
         tu, tv = np.meshgrid(t, t, indexing="xy")

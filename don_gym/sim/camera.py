@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import pybullet as p
 from scipy.spatial.transform import Rotation
 
 from don_gym.errors import DonGymError
@@ -190,8 +191,6 @@ def render_camera(
         ``ER_SEGMENTATION_MASK_OBJECT_AND_LINKINDEX``: -1 for background, otherwise
         ``body_id + ((link_index + 1) << 24)`` (see :func:`decode_segmentation`).
     """
-    import pybullet as p  # here, so that the option checks above can be imported without PyBullet
-
     check_renderer(renderer)
     W, H = intrinsics.width, intrinsics.height
     _, _, rgba, zbuffer, seg = client.getCameraImage(
