@@ -187,6 +187,16 @@ def _dataset_info(config: DatasetConfig, model: ObjectModel, field: DescriptorFi
         "mesh_hash": model.mesh_hash,
         "descriptor_field_hash": field.field_hash,
         "background_descriptor": field.background,
+        "scene_kind": "single",
+        "parts": [
+            {
+                "name": model.name,
+                "object_source": model.source,
+                "object_scale": config.object_scale,
+                "object_signature": model.shape_signature.to_dict(),
+                "mesh_hash": model.mesh_hash,
+            }
+        ],
     }
 
 
@@ -487,6 +497,11 @@ class SceneWriter:
                 "object": self.model.name,
                 "intrinsics": intrinsics.as_array(),
                 "T_world_object": scene.T_world_object,
+                "instances": [{"instance_id": 1, "part": self.model.name, "T_world_object": scene.T_world_object}],
+                # The truth (true camera poses), for pose evaluation and export; targets use the reported ones.
+                "T_camera_object": [
+                    {"1": invert_transform(fr.T_world_camera) @ scene.T_world_object} for fr in scene.frames
+                ],
                 "T_world_camera": np.stack([fr.T_world_camera for fr in scene.frames]),
                 "T_world_camera_reported": np.stack([fr.T_world_camera_reported for fr in scene.frames]),
                 "table_height_m": scene.table_height_m,

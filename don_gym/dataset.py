@@ -33,13 +33,17 @@ if TYPE_CHECKING:  # imported where used, to keep this module light
     from don_gym.objects import ShapeSignature
 
 FORMAT_NAME = "don_gym-dataset"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 DATASET_FILE = "dataset.json"
 FIELD_FILE = "descriptor_field.npz"
 SCENE_FILE = "scene.json"
 
 #: Image kinds stored per frame, with their on-disk encoding.
-FRAME_KINDS = ("rgb", "depth", "depth_ideal", "depth_fused", "mask", "mask_fused", "target_mask", "descriptor")
+FRAME_KINDS = (
+    "rgb", "depth", "depth_ideal", "depth_fused", "mask", "mask_fused", "target_mask", "descriptor", "instance"
+)  # fmt: skip
+#: ``scene_kind`` of ``dataset.json`` (version 2): today's single-part scenes, piles of parts, BOP imports.
+SCENE_KINDS = ("single", "bin", "bop")
 DEPTH_KINDS = ("depth", "depth_ideal", "depth_fused")
 MASK_KINDS = ("mask", "mask_fused", "target_mask")
 #: Named depth sources: the (depth kind, object-mask kind) images each one reads.
@@ -121,7 +125,7 @@ def write_frame(scene_path: Path, frame_index: int, images: Mapping[str, np.ndar
     """Write one frame's images (any subset of ``FRAME_KINDS``) atomically.
 
     ``rgb`` uint8 (H, W, 3); depth kinds float metres; mask kinds bool; ``descriptor``
-    float (H, W, D) in [0, 1].
+    float (H, W, D) in [0, 1]; ``instance`` int (H, W), the visible instance id (0 = none), as 16-bit PNG.
     """
     for kind, image in images.items():
         if kind not in FRAME_KINDS:
@@ -133,6 +137,11 @@ def write_frame(scene_path: Path, frame_index: int, images: Mapping[str, np.ndar
             write_png(path, encode_depth_mm(image))
         elif kind in MASK_KINDS:
             write_png(path, np.asarray(image, dtype=bool).astype(np.uint8) * 255)
+        elif kind == "instance":
+            ids = np.asarray(image)
+            if ids.size and (ids.min() < 0 or ids.max() > 65535):
+                raise ValueError("instance ids must lie in 0..65535")
+            write_png(path, ids.astype(np.uint16))
         elif descriptor_dim == 3:
             quantised = np.rint(np.clip(np.asarray(image, dtype=np.float64), 0.0, 1.0) * 65535.0).astype(np.uint16)
             write_png(path, quantised[..., ::-1])
@@ -151,6 +160,13 @@ def read_frame_image(scene_path: Path, kind: str, frame_index: int, descriptor_d
         return decode_depth_mm(_read_png(path))
     if kind in MASK_KINDS:
         return _read_png(path, cv2.IMREAD_GRAYSCALE) > 127
+    if kind == "instance":
+        if not path.is_file():
+            raise DatasetError(
+                f"{path}: missing; this scene stores no instance image (a single-part scene: its mask is instance 1; "
+                "use don_gym.dataset.instance_mask)"
+            )
+        return _read_png(path, cv2.IMREAD_UNCHANGED).astype(np.int32)
     if kind == "descriptor":
         if descriptor_dim == 3:
             return _read_png(path)[..., ::-1].astype(np.float32) / 65535.0
@@ -399,6 +415,37 @@ class SceneRecord:
     def num_frames(self) -> int:
         return len(self.T_world_camera)
 
+    @property
+    def instances(self) -> list[dict[str, Any]]:
+        """The annotated part instances: dicts with ``instance_id`` (int >= 1), ``part`` (a name of
+        :attr:`DONDataset.parts`) and, in static scenes, ``T_world_object`` (4, 4). A version 1 scene is one
+        instance, id 1, of the dataset's object at the scene's ``T_world_object``."""
+        recorded = self.metadata.get("instances")
+        if recorded is None:
+            part = str(self.metadata.get("object", ""))
+            return [{"instance_id": 1, "part": part, "T_world_object": self.T_world_object.copy()}]
+        instances = []
+        for entry in recorded:
+            instance = {"instance_id": int(entry["instance_id"]), "part": str(entry["part"])}
+            if entry.get("T_world_object") is not None:
+                instance["T_world_object"] = np.asarray(entry["T_world_object"], dtype=np.float64)
+            instances.append(instance)
+        return instances
+
+    def T_camera_object(self, frame: int) -> dict[int, np.ndarray]:
+        """The TRUE pose (4, 4; OpenCV camera axes, metres) of each instance annotated in frame ``frame``,
+        by instance id: recorded per frame in version 2, else from the true camera pose and the static
+        object pose (``inv(T_world_camera[frame]) @ T_world_object``)."""
+        if not 0 <= frame < self.num_frames:
+            raise IndexError(f"frame {frame}: the scene has frames 0..{self.num_frames - 1}")
+        recorded = self.metadata.get("T_camera_object")
+        if recorded is not None:
+            return {int(k): np.asarray(v, dtype=np.float64) for k, v in recorded[frame].items()}
+        T_camera_world = np.linalg.inv(self.T_world_camera[frame])
+        return {
+            int(i["instance_id"]): T_camera_world @ i["T_world_object"] for i in self.instances if "T_world_object" in i
+        }
+
 
 class DONDataset:
     """Read access to a dataset directory written by ``don-gym build-dataset``.
@@ -424,15 +471,27 @@ class DONDataset:
         if isinstance(dim, bool) or not isinstance(dim, int) or dim < 1:
             raise DatasetError(f"{info_path}: descriptor_dim {dim!r} is not an integer >= 1; the file is corrupt")
         self.descriptor_dim = dim
+        self.scene_kind = str(self.info.get("scene_kind", "single"))
         self.scenes = [
             self._read_scene(p) for p in sorted((self.root / "scenes").glob("scene_*")) if (p / SCENE_FILE).is_file()
         ]
         if not self.scenes:
             raise DatasetError(f"{self.root}: no complete scene; run don-gym build-dataset to finish it")
 
+    @property
+    def parts(self) -> list[dict[str, Any]]:
+        """The distinct parts of the dataset: dicts with ``name``, ``object_source``, ``object_scale``,
+        ``object_signature`` and ``mesh_hash``; the first is the primary part (the one of
+        ``descriptor_field.npz``, named by the top-level ``object*`` keys). Version 1: that part alone."""
+        recorded = self.info.get("parts")
+        if recorded:
+            return [dict(p) for p in recorded]
+        return [primary_part_record(self.info)]
+
     def _read_scene(self, path: Path) -> SceneRecord:
         meta = read_json(path / SCENE_FILE)
         try:
+            _check_v2_scene(meta)
             return SceneRecord(
                 path=path,
                 index=int(meta["scene_index"]),
@@ -466,8 +525,11 @@ class DONDataset:
         from don_gym.objects import builtin_names, load_object
 
         spec, source = str(self.info["object"]), str(self.info.get("object_source", ""))
-        if spec not in builtin_names() and not Path(spec).expanduser().exists() and Path(source).is_file():
-            spec = source
+        if spec not in builtin_names() and not Path(spec).expanduser().exists():
+            if (self.root / spec).is_file():  # a model stored with the dataset (BOP imports)
+                spec = str(self.root / spec)
+            elif Path(source).is_file():
+                spec = source
         try:
             model = load_object(spec, scale=self.info.get("object_scale"))
             differences = part_differences(self.info, model.shape_signature, model.mesh_hash, self.root / DATASET_FILE)
@@ -479,6 +541,54 @@ class DONDataset:
                 f"now ({', '.join(differences[:3])}: now vs recorded)"
             )
         return model
+
+
+def primary_part_record(info: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``parts`` entry of the dataset's primary part, from the top-level keys of ``dataset.json``."""
+    from don_gym.objects import part_name
+
+    return {
+        "name": str(info.get("object_name") or part_name(str(info.get("object", "")))),
+        "object_source": info.get("object_source"),
+        "object_scale": info.get("object_scale"),
+        "object_signature": info.get("object_signature"),
+        "mesh_hash": info.get("mesh_hash"),
+    }
+
+
+def _check_v2_scene(meta: Mapping[str, Any]) -> None:
+    """KeyError/ValueError/TypeError for version 2 keys of ``scene.json`` that do not fit together."""
+    instances = meta.get("instances")
+    if instances is None:
+        return
+    ids = [int(i["instance_id"]) for i in instances]
+    if any(i < 1 for i in ids) or len(set(ids)) != len(ids):
+        raise ValueError(f"instance ids {ids}: expected distinct integers >= 1")
+    per_frame = meta.get("T_camera_object")
+    if per_frame is not None:
+        if len(per_frame) != len(meta["T_world_camera"]):
+            raise ValueError(
+                f"T_camera_object has {len(per_frame)} frames, T_world_camera {len(meta['T_world_camera'])}"
+            )
+        for poses in per_frame:
+            for key, pose in poses.items():
+                if int(key) not in ids or np.asarray(pose, dtype=np.float64).shape != (4, 4):
+                    raise ValueError(f"T_camera_object: instance {key} is not in instances or its pose is not 4x4")
+
+
+def instance_mask(data: DONDataset, scene: int, frame: int) -> np.ndarray:
+    """(H, W) int32 visible instance id per pixel (0 = none): the scene's ``instance`` image, or for a scene
+    without one (single-part scenes) its object ``mask`` as instance 1."""
+    record = data.scenes[scene]
+    if frame_path(record.path, "instance", frame).is_file():
+        return data.image(scene, frame, "instance")
+    ids = [i["instance_id"] for i in record.instances]
+    if len(ids) != 1:
+        raise DatasetError(
+            f"{record.path}: {len(ids)} instances and no instance image for frame {frame}; expected "
+            f"{frame_path(record.path, 'instance', frame)}"
+        )
+    return np.where(data.image(scene, frame, "mask"), ids[0], 0).astype(np.int32)
 
 
 def has_fused_depth(data: DONDataset) -> bool:

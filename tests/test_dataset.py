@@ -137,7 +137,7 @@ def test_correspondences_on_ideal_depth_hit_the_same_surface_point(ideal_scene) 
 
 def test_dataset_layout_and_round_trip(small_dataset: Path) -> None:
     data = DONDataset(small_dataset)
-    assert data.info["format"] == "don_gym-dataset" and data.info["version"] == 1
+    assert data.info["format"] == "don_gym-dataset" and data.info["version"] == 2
     assert len(data.scenes) == 2 and data.frames == [(s, f) for s in range(2) for f in range(3)]
     scene = data.scenes[0]
     assert scene.T_world_camera.shape == (3, 4, 4) and scene.intrinsics.width == 96

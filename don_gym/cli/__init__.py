@@ -19,7 +19,7 @@ from typing import NoReturn
 from don_gym.errors import DonGymError
 
 # Subcommand modules, in the order --help lists them.
-SUBCOMMANDS = ["embed", "build-dataset", "export", "train", "evaluate", "benchmark"]
+SUBCOMMANDS = ["embed", "build-dataset", "import-bop", "export", "train", "evaluate", "benchmark"]
 
 
 def parse_size(text: str, option: str = "size") -> tuple[int, int]:
