@@ -8,16 +8,21 @@ import argparse
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "export",
-        help="export dataset scenes in the original Dense Object Nets (pdc) layout",
+        help="export dataset scenes in the original Dense Object Nets (pdc) layout or as a BOP dataset",
         description=(
             "Write scenes of a don_gym dataset in the layout of the original Dense Object Nets code "
-            "(processed/images/*_rgb.png, *_depth.png, image_masks/, pose_data.yaml, camera_info.yaml), "
-            "so that its loaders read our data."
+            "(--format pdc: processed/images/*_rgb.png, *_depth.png, image_masks/, pose_data.yaml, "
+            "camera_info.yaml), so that its loaders read our data, or as a BOP scene-wise dataset (--format bop: "
+            "models/ in mm with models_info.json, SPLIT/NNNNNN/ with scene_camera.json, scene_gt.json, "
+            "scene_gt_info.json, rgb/, depth/, mask/, mask_visib/), which BOP's toolkit reads."
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     parser.add_argument("data", help="dataset directory written by don-gym build-dataset")
-    parser.add_argument("--format", default="pdc", choices=["pdc"], help="target layout")
+    parser.add_argument("--format", default="pdc", choices=["pdc", "bop"], help="target layout")
+    parser.add_argument(
+        "--split", default="train", choices=["train", "test"], help="BOP split directory to write (--format bop)"
+    )
     parser.add_argument("--scene", type=int, action="append", help="scene position to export (repeatable); default all")
     parser.add_argument("--out", required=True, help="output directory")
     parser.set_defaults(run=run)
@@ -38,6 +43,15 @@ def run(args: argparse.Namespace) -> int:
                 f"--scene {scene}: no such scene; expected 0..{len(dataset.scenes) - 1}, the positions of the "
                 "dataset's complete scenes"
             )
+    if args.format == "bop":
+        from don_gym.export import export_bop
+
+        try:
+            path = export_bop(dataset, args.out, split=args.split, scenes=scenes)
+        except OSError as exc:
+            raise DatasetError(f"{args.out}: {exc}") from exc
+        print(f"wrote {path} ({len(scenes)} scenes) and {args.out}/models")
+        return 0
     for scene in scenes:
         try:
             path = export_scene_pdc(dataset, scene, args.out)
