@@ -1,0 +1,195 @@
+"""Pose from descriptors (don_gym.pose) and the BOP metrics (don_gym.pose_metrics): known answers on tiny images."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from don_gym.descriptor_sources import OracleDescriptors
+from don_gym.errors import DonGymError
+from don_gym.geometry import CameraIntrinsics, make_transform, rotation_angle_rad
+from don_gym.objects import load_object
+from don_gym.pose import (
+    PoseConfig,
+    estimate_pose,
+    pose_targets,
+    pose_targets_for,
+    reference_vertex_descriptors,
+)
+from don_gym.pose_metrics import (
+    MSPD_THRESHOLDS_PX,
+    MSSD_THRESHOLDS,
+    adds,
+    bop_symmetries,
+    model_diameter,
+    mspd,
+    mssd,
+    object_symmetries,
+    pose_recalls,
+    recall_curve,
+    symmetry_transformations,
+)
+from don_gym.render import DescriptorRenderer
+
+CUBE = np.array([[x, y, z] for x in (-0.01, 0.01) for y in (-0.01, 0.01) for z in (-0.02, 0.02)])
+K = CameraIntrinsics.d435(160, 120)
+T_GT = make_transform(Rotation.from_euler("xyz", [0.3, -0.5, 1.0]).as_matrix(), [0.01, -0.02, 0.4])
+
+
+# --- metrics -------------------------------------------------------------------------------------
+
+
+def test_identity_pose_has_no_error():
+    syms = symmetry_transformations()
+    assert syms.shape == (1, 4, 4)
+    assert mssd(T_GT, T_GT, CUBE, syms) == pytest.approx(0.0, abs=1e-12)
+    assert mspd(T_GT, T_GT, K.K, CUBE, syms) == pytest.approx(0.0, abs=1e-9)
+    assert adds(T_GT, T_GT, CUBE) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_known_translation_offset_gives_known_errors():
+    offset = np.array([0.005, 0.0, 0.0])  # 5 mm along the camera's x
+    T_est = T_GT.copy()
+    T_est[:3, 3] += offset
+    syms = symmetry_transformations()
+    assert mssd(T_est, T_GT, CUBE, syms) == pytest.approx(0.005, rel=1e-9)
+    # Every point moves 5 mm sideways: its image moves fx * 5 mm / z; the nearest point moves most.
+    z = (CUBE @ T_GT[:3, :3].T + T_GT[:3, 3])[:, 2]
+    assert mspd(T_est, T_GT, K.K, CUBE, syms) == pytest.approx(K.fx * 0.005 / z.min(), rel=1e-9)
+    assert 0.0 < adds(T_est, T_GT, CUBE) <= 0.005 + 1e-12
+
+
+def test_pose_rotated_by_a_symmetry_has_no_mssd_but_a_plain_error():
+    model = load_object("toolcap")
+    points = np.asarray(model.mesh.vertices)
+    syms = object_symmetries(model)
+    assert len(syms) == 315  # ceil(pi / 0.01) rotations over a turn, as BOP discretises
+    turn = make_transform(Rotation.from_rotvec([0.0, 0.0, 2.0 * np.pi * 40 / 315]).as_matrix())
+    T_est = T_GT @ turn  # the same part in the image
+    assert mssd(T_est, T_GT, points, syms) < 1e-9
+    assert mspd(T_est, T_GT, K.K, points, syms) < 1e-6
+    assert mssd(T_est, T_GT, points, symmetry_transformations()) > 0.01  # without the symmetry: centimetres
+    # A turn between two discretised rotations costs at most the furthest point's half-step travel.
+    half = make_transform(Rotation.from_rotvec([0.0, 0.0, np.pi / 315]).as_matrix())
+    radius = np.linalg.norm(points[:, :2], axis=1).max()
+    assert mssd(T_GT @ half, T_GT, points, syms) == pytest.approx(radius * 2 * np.sin(np.pi / 630), rel=1e-6)
+
+
+def test_bop_symmetries_in_millimetres_become_metres():
+    flip = np.diag([-1.0, -1.0, 1.0, 1.0])
+    flip[:3, 3] = [10.0, 0.0, 0.0]  # mm: a half turn about z through x = 5 mm
+    syms = bop_symmetries({"symmetries_discrete": [flip.ravel().tolist()]})
+    assert syms.shape == (2, 4, 4)
+    assert syms[1][:3, 3] == pytest.approx([0.010, 0.0, 0.0])
+    continuous = bop_symmetries({"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [5.0, 0, 0]}]})
+    # Every rotation keeps the axis through (5 mm, 0, 0) in place.
+    on_axis = np.array([0.005, 0.0, 0.03, 1.0])
+    assert np.allclose(continuous @ on_axis, on_axis)
+
+
+def test_recalls_and_average_recall():
+    assert recall_curve([0.0, np.inf, np.nan, 0.2], [0.1, 0.3]).tolist() == [0.25, 0.5]
+    diameter = 0.1
+    # MSSD 0.012 m = 0.12 diameters: correct from threshold 0.15 on (8 of 10 thresholds).
+    # MSPD 12 px at 1280 px width = 6 px at 640: correct from 10 px on (9 of 10).
+    result = pose_recalls([0.012, np.nan], [12.0, np.nan], [0.005, np.nan], diameter, 1280)
+    assert result["mssd_recall"] == pytest.approx([0.0, 0.0, 0.5, 0.5, 0.5, 0.5, 0.5, 0.5, 0.5, 0.5])
+    assert result["ar_mssd"] == pytest.approx(0.4)
+    assert result["ar_mspd"] == pytest.approx(0.45)
+    assert result["ar"] == pytest.approx(0.425)
+    assert result["adds_share"] == pytest.approx(0.5)
+    assert len(MSSD_THRESHOLDS) == len(MSPD_THRESHOLDS_PX) == 10
+    assert model_diameter(CUBE) == pytest.approx(np.sqrt(0.02**2 + 0.02**2 + 0.04**2))
+    with pytest.raises(DonGymError, match="diameter_m"):
+        pose_recalls([0.0], [0.0], [0.0], 0.0, 640)
+
+
+# --- pose ----------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def toolcap():
+    return load_object("toolcap")
+
+
+@pytest.fixture(scope="module")
+def oracle(toolcap):
+    return OracleDescriptors(toolcap)
+
+
+def _view(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return make_transform(
+        Rotation.random(random_state=seed).as_matrix(), [rng.uniform(-0.02, 0.02), rng.uniform(-0.02, 0.02), 0.4]
+    )
+
+
+@pytest.mark.parametrize("with_depth", [True, False])
+def test_oracle_pose_of_a_symmetric_part_is_right_up_to_its_symmetry(toolcap, oracle, with_depth):
+    targets = pose_targets_for(oracle)
+    assert targets.symmetric and "rotation about" in targets.defined_up_to
+    points = np.asarray(toolcap.mesh.vertices)
+    syms = object_symmetries(toolcap)
+    for seed in range(3):
+        T = _view(seed)
+        view = oracle.render(K, T)
+        estimate = estimate_pose(view.descriptor_image, targets, K, view.depth_m if with_depth else None)
+        assert estimate.found and estimate.symmetric and estimate.solver == ("rings+icp" if with_depth else "pnp")
+        assert estimate.inliers >= 0.9 * estimate.correspondences > 50
+        assert 0.9 <= estimate.score <= 1.0 and estimate.time_s > 0
+        # Inside BOP's tightest thresholds (5% of the 49 mm diameter, 5 px); depth within 1 mm.
+        tolerance = 0.02 if with_depth else 0.05
+        assert mssd(estimate.T_camera_object, T, points, syms) < tolerance * targets.diameter_m
+        assert mspd(estimate.T_camera_object, T, K.K, points, syms) < 1.0
+
+
+def _coordinate_descriptors(model) -> np.ndarray:
+    """Descriptors that name every vertex: its coordinates scaled into [0, 1] (no symmetry honoured)."""
+    vertices = np.asarray(model.mesh.vertices)
+    return ((vertices - vertices.min(0)) / np.ptp(vertices, axis=0)).astype(np.float32)
+
+
+@pytest.mark.parametrize("with_depth", [True, False])
+def test_descriptors_that_name_vertices_give_the_full_pose(toolcap, with_depth):
+    descriptors = _coordinate_descriptors(toolcap)
+    background = np.array([1.0, 1.0, 1.0], np.float32) * 3.0
+    targets = pose_targets(toolcap, descriptors, symmetric=False, background=background, max_distance=0.02)
+    assert not targets.symmetric and targets.defined_up_to is None
+    renderer = DescriptorRenderer(toolcap.mesh, descriptors, background)
+    T = _view(4)
+    view = renderer.render(K, T)
+    estimate = estimate_pose(view.descriptor_image, targets, K, view.depth_m if with_depth else None)
+    assert estimate.found and not estimate.symmetric
+    assert estimate.solver == ("kabsch+icp" if with_depth else "pnp")
+    # The whole rotation, about the axis too: the plain (non-symmetric) MSSD is small.
+    assert rotation_angle_rad(estimate.T_camera_object[:3, :3], T[:3, :3]) < np.radians(3.0)
+    assert mssd(estimate.T_camera_object, T, np.asarray(toolcap.mesh.vertices), symmetry_transformations()) < 0.002
+
+
+def test_reference_views_give_targets_for_any_source(toolcap, oracle):
+    references = [(oracle.render(K, _view(s)).descriptor_image, K, _view(s)) for s in (10, 11)]
+    descriptors, valid = reference_vertex_descriptors(toolcap, references)
+    assert 0 < valid.sum() < len(valid)  # two views see part of the part
+    field = oracle.field.vertex_descriptors
+    # Each seen vertex reads its pixel's descriptor: the field's, up to the pixel's offset from the vertex.
+    assert np.median(np.abs(descriptors[valid] - field[valid])) < 0.02
+    targets = pose_targets(toolcap, descriptors, valid, symmetric=True)
+    T = _view(5)
+    view = oracle.render(K, T)
+    estimate = estimate_pose(view.descriptor_image, targets, K, view.depth_m, object_mask=view.object_mask)
+    assert estimate.found
+    assert mssd(estimate.T_camera_object, T, np.asarray(toolcap.mesh.vertices), object_symmetries(toolcap)) < 0.003
+
+
+def test_no_part_in_view_gives_no_pose_and_bad_shapes_are_refused(oracle):
+    targets = pose_targets_for(oracle)
+    empty = np.broadcast_to(oracle.background, (K.height, K.width, 3)).copy()
+    estimate = estimate_pose(empty, targets, K, np.zeros((K.height, K.width)))
+    assert not estimate.found and estimate.T_camera_object is None and estimate.solver == "none"
+    assert estimate.score == 0.0
+    with pytest.raises(DonGymError, match="descriptor_image"):
+        estimate_pose(empty[:10], targets, K)
+    with pytest.raises(DonGymError, match="depth_m"):
+        estimate_pose(empty, targets, K, np.zeros((3, 3)))
+    assert PoseConfig().min_inliers >= 6
