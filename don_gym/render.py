@@ -3,6 +3,9 @@
 :class:`DescriptorRenderer` projects an object's optimal per-vertex descriptors into a camera image by
 ray casting (docs/background.md, section "Rendering descriptor targets"); :func:`make_target` builds the
 paper's "geometric", "edge" and "mask" target variants (Kupcsik et al. 2021, "View-dependent Descriptors").
+:class:`MultiPartDescriptorRenderer` renders several instances of several parts in one view, the nearest
+surface winning at each pixel, and :func:`make_instances_target` builds the variants per instance
+(docs/background.md, "Several parts in one descriptor space").
 """
 
 from __future__ import annotations
@@ -592,4 +595,269 @@ def make_target(
     if box is not None:
         target[box][mask[box]] = image[box][mask[box]]
     target[..., mask_dim] = mask_channel(mask)
+    return target
+
+
+@dataclass
+class RenderedInstances:
+    """One rendered frame of several object instances, occluding each other.
+
+    Attributes:
+        descriptor_image: (H, W, D) float32, at each pixel the interpolated descriptor of the nearest
+            surface among all instances, the background descriptor off every instance.
+        instance_ids: (H, W) int32, the id of the instance seen at each pixel, 0 off every instance.
+        depth_m: (H, W) float32 camera-frame z of the nearest hit in metres, 0 off every instance.
+        triangle_ids: (H, W) int32 index into the seen instance's mesh faces, -1 off every instance.
+        ids: (K,) int32 the instances' ids, in the order they were given.
+    """
+
+    descriptor_image: np.ndarray
+    instance_ids: np.ndarray
+    depth_m: np.ndarray
+    triangle_ids: np.ndarray
+    ids: np.ndarray
+
+    @property
+    def object_mask(self) -> np.ndarray:
+        """(H, W) bool, pixels of any instance."""
+        return self.instance_ids > 0
+
+    @property
+    def visible_masks(self) -> np.ndarray:
+        """(K, H, W) bool, each instance's visible pixels (in the order of :attr:`ids`)."""
+        return self.instance_ids[None] == self.ids[:, None, None]
+
+
+def _check_instance_ids(instance_ids: object, count: int) -> np.ndarray:
+    if instance_ids is None:
+        return np.arange(1, count + 1, dtype=np.int32)
+    ids = np.asarray(instance_ids)
+    if (
+        ids.shape != (count,)
+        or not np.issubdtype(ids.dtype, np.integer)
+        or (count and ids.min() < 1)
+        or len(np.unique(ids)) != count
+        or (count and ids.max() > np.iinfo(np.int32).max)
+    ):
+        raise DonGymError(f"instance_ids: expected {count} distinct integers >= 1 (one per instance), got {ids!r}")
+    return ids.astype(np.int32)
+
+
+def _render_instances(
+    renderers: list[DescriptorRenderer],
+    poses: list[np.ndarray],
+    ids: np.ndarray,
+    background: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    visible_instance_ids: np.ndarray | None,
+) -> RenderedInstances:
+    """The ray cast of each instance (:meth:`_MeshRaycaster.cast`), the nearest hit per pixel kept."""
+    H, W = intrinsics.height, intrinsics.width
+    dims = len(background)
+    all_hits = [renderer._raycaster.cast(intrinsics, pose) for renderer, pose in zip(renderers, poses, strict=True)]
+    pixels = np.concatenate([hits.pixels for hits in all_hits] + [np.zeros(0, np.int64)])
+    depth = np.concatenate([hits.depth_m for hits in all_hits] + [np.zeros(0)])
+    owner = np.concatenate(
+        [np.full(len(hits.pixels), k, np.int64) for k, hits in enumerate(all_hits)] + [np.zeros(0, np.int64)]
+    )
+    # Nearest hit per pixel; an exact tie goes to the instance given first.
+    order = np.lexsort((owner, depth, pixels))
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = pixels[order[1:]] != pixels[order[:-1]]
+    winner = np.zeros(len(pixels), dtype=bool)
+    winner[order[first]] = True
+    if visible_instance_ids is not None:
+        # As for one instance: the ray cast's nearest hit AND the simulator's segmentation says that instance.
+        segmentation = np.asarray(visible_instance_ids)
+        if segmentation.shape != (H, W) or not np.issubdtype(segmentation.dtype, np.integer):
+            raise DonGymError(
+                f"visible_instance_ids: expected integer instance ids of shape {(H, W)}, got {segmentation.shape}"
+            )
+        winner &= segmentation.ravel()[pixels] == ids[owner]
+
+    descriptor_image = _filled_image(H, W, background).reshape(H * W, dims)
+    instance_image = np.zeros(H * W, dtype=np.int32)
+    depth_m = np.zeros(H * W, dtype=np.float32)
+    triangle_ids = np.full(H * W, -1, dtype=np.int32)
+    start = 0
+    for k, (renderer, hits) in enumerate(zip(renderers, all_hits, strict=True)):
+        keep = winner[start : start + len(hits.pixels)]
+        start += len(hits.pixels)
+        if not keep.any():
+            continue
+        hits = hits.subset(keep)
+        descriptor_image[hits.pixels] = renderer._interpolate(hits.triangle_ids, hits.barycentric)
+        instance_image[hits.pixels] = ids[k]
+        depth_m[hits.pixels] = hits.depth_m
+        triangle_ids[hits.pixels] = hits.triangle_ids
+    return RenderedInstances(
+        descriptor_image.reshape(H, W, dims),
+        instance_image.reshape(H, W),
+        depth_m.reshape(H, W),
+        triangle_ids.reshape(H, W),
+        ids,
+    )
+
+
+class MultiPartDescriptorRenderer:
+    """Renders descriptor target images of several parts' instances in one view, with exact occlusion.
+
+    Each instance is ray cast as :class:`DescriptorRenderer` casts one object (same rays, same cached BVH
+    per mesh, same float64 depth and barycentrics); every pixel keeps the hit of smallest depth among all
+    instances, so an instance in front hides the ones behind it exactly at the pixel centres.
+
+    Args:
+        meshes: one mesh per part (see :class:`DescriptorRenderer`), metres, object frame.
+        vertex_descriptors: one (N_i, D) array per part, the part's descriptors in the shared space (e.g.
+            :meth:`don_gym.descriptors.multi_part.PartSpace.map_descriptors` of its field).
+        background: (D,) descriptor of pixels off every instance.
+        intersector: as for :class:`DescriptorRenderer`.
+    """
+
+    def __init__(
+        self,
+        meshes: list[trimesh.Trimesh | tuple[np.ndarray, np.ndarray]],
+        vertex_descriptors: list[np.ndarray],
+        background: np.ndarray,
+        intersector: str = "auto",
+    ) -> None:
+        if len(meshes) == 0:
+            raise DonGymError("meshes: expected at least one part's mesh, got none")
+        if len(vertex_descriptors) != len(meshes):
+            raise DonGymError(
+                f"vertex_descriptors: {len(vertex_descriptors)} arrays for {len(meshes)} meshes; expected one per mesh"
+            )
+        shapes = [np.shape(d) for d in vertex_descriptors]
+        if any(len(shape) != 2 for shape in shapes) or len({shape[1] for shape in shapes}) != 1:
+            raise DonGymError(
+                f"vertex_descriptors: expected one (N_i, D) array per part with one D for all, got shapes {shapes}"
+            )
+        self.background = _check_background(background, shapes[0][1])
+        self.parts = [
+            DescriptorRenderer(mesh, descriptors, self.background, intersector)
+            for mesh, descriptors in zip(meshes, vertex_descriptors, strict=True)
+        ]
+
+    @property
+    def descriptor_dim(self) -> int:
+        return int(self.background.shape[0])
+
+    def render(
+        self,
+        intrinsics: CameraIntrinsics,
+        instances: list[tuple[int, np.ndarray]],
+        instance_ids: list[int] | np.ndarray | None = None,
+        visible_instance_ids: np.ndarray | None = None,
+    ) -> RenderedInstances:
+        """Render one frame of instances of the parts.
+
+        Args:
+            intrinsics: pinhole intrinsics; the image is ``intrinsics.height`` x ``intrinsics.width``.
+            instances: ``(part_index, T_camera_object)`` per instance: the index into the parts given to
+                the constructor and the (4, 4) instance pose in the (OpenCV) camera frame, from the
+                *reported* camera pose (as :meth:`DescriptorRenderer.render`).
+            instance_ids: K distinct ids >= 1, one per instance; None: 1..K in the order given.
+            visible_instance_ids: (H, W) int segmentation by the simulator, the id of the instance seen at
+                each pixel (0 or any other id: none of these). A pixel keeps its nearest hit only when the
+                segmentation names the same instance (things other than the instances, such as the
+                gripper or a bin's wall, hide them this way); None: the instances hide only each other.
+
+        Returns:
+            A :class:`RenderedInstances`. With one instance its descriptor image, depth and triangle ids
+            are those of :meth:`DescriptorRenderer.render` (with ``visible_mask = segmentation == id``).
+        """
+        poses, renderers = [], []
+        for k, instance in enumerate(instances):
+            try:
+                part, pose = instance
+            except (TypeError, ValueError) as exc:
+                raise DonGymError(f"instances[{k}]: expected a (part_index, T_camera_object) pair") from exc
+            if isinstance(part, (bool, np.bool_)) or not isinstance(part, (int, np.integer)):
+                raise DonGymError(f"instances[{k}]: part index {part!r} is not an integer")
+            if not 0 <= part < len(self.parts):
+                raise DonGymError(f"instances[{k}]: part index {part} is outside 0..{len(self.parts) - 1}")
+            renderers.append(self.parts[int(part)])
+            poses.append(_check_transform(pose))
+        ids = _check_instance_ids(instance_ids, len(instances))
+        return _render_instances(renderers, poses, ids, self.background, intrinsics, visible_instance_ids)
+
+
+def render_instances(
+    instances: list[tuple[trimesh.Trimesh | tuple[np.ndarray, np.ndarray], np.ndarray, np.ndarray]],
+    background: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    instance_ids: list[int] | np.ndarray | None = None,
+    visible_instance_ids: np.ndarray | None = None,
+    intersector: str = "auto",
+) -> RenderedInstances:
+    """Convenience wrapper of :class:`MultiPartDescriptorRenderer` for ``(mesh, vertex_descriptors,
+    T_camera_object)`` per instance (the BVH is cached per mesh object, as for one object)."""
+    if len(instances) == 0:
+        raise DonGymError("instances: expected at least one (mesh, vertex_descriptors, T_camera_object), got none")
+    try:
+        meshes, descriptors, poses = zip(*instances, strict=True)
+    except (TypeError, ValueError) as exc:
+        raise DonGymError("instances: expected (mesh, vertex_descriptors, T_camera_object) triples") from exc
+    renderer = MultiPartDescriptorRenderer(list(meshes), list(descriptors), background, intersector)
+    return renderer.render(
+        intrinsics, list(enumerate(poses)), instance_ids=instance_ids, visible_instance_ids=visible_instance_ids
+    )
+
+
+def make_instances_target(
+    variant: str,
+    descriptor_image: np.ndarray,
+    instance_ids: np.ndarray,
+    background: np.ndarray,
+    edge_width_px: float | None = None,
+    mask_dim: int = -1,
+) -> np.ndarray:
+    """:func:`make_target` for a frame of several instances, each treated as its own object.
+
+    - ``"geometric"``: the rendered descriptors as they are.
+    - ``"edge"``: every instance blended towards the background near its own visible outline
+      (:func:`edge_blend` of its mask), also where it borders another instance: the network sees a
+      boundary there as it does at a border with the background.
+    - ``"mask"``: dimension ``mask_dim`` is each instance's own :func:`mask_channel`, 0 at its visible
+      outline (also towards another instance) rising to 1 at its own centre; the other dimensions keep
+      the descriptors, the background (:func:`mask_background` of the space) off every instance.
+
+    With one instance each variant equals :func:`make_target` of its mask.
+
+    Args:
+        variant: ``"geometric"``, ``"edge"`` or ``"mask"``.
+        descriptor_image: (H, W, D), e.g. ``RenderedInstances.descriptor_image``.
+        instance_ids: (H, W) int, the instance seen per pixel, 0 off every instance.
+        background: (D,) the target's background descriptor (see :func:`make_target`).
+        edge_width_px: blend width for ``"edge"``; None: :func:`default_edge_width_px`.
+        mask_dim: dimension replaced for ``"mask"``.
+
+    Returns:
+        (H, W, D) float32, a new array.
+    """
+    if variant not in TARGET_VARIANTS:
+        raise DonGymError(f"target variant {variant!r} is unknown; expected one of {list(TARGET_VARIANTS)}")
+    image = np.asarray(descriptor_image, dtype=np.float32)
+    if image.ndim != 3:
+        raise DonGymError(f"descriptor_image: expected (H, W, D), got shape {image.shape}")
+    height, width, dims = image.shape
+    labels = np.asarray(instance_ids)
+    if labels.shape != (height, width) or not np.issubdtype(labels.dtype, np.integer):
+        raise DonGymError(f"instance_ids: expected integer ids of shape {(height, width)}, got {labels.shape}")
+    if variant == "geometric":
+        return image.copy()
+    background = _check_background(background, dims)
+    if variant == "mask":
+        _check_mask_dim(mask_dim, dims)
+    target = _filled_image(height, width, background)
+    channel = np.zeros((height, width), dtype=np.float32)
+    for instance in np.unique(labels[labels != 0]):
+        mask = labels == instance
+        if variant == "edge":
+            target[mask] = edge_blend(image, mask, background, edge_width_px)[mask]
+        else:
+            target[mask] = image[mask]
+            channel[mask] = mask_channel(mask)[mask]
+    if variant == "mask":
+        target[..., mask_dim] = channel
     return target

@@ -18,15 +18,20 @@ from don_gym.descriptors.laplacian import (
     mesh_laplacian,
     normalize_to_unit_area,
 )
+from don_gym.descriptors.multi_part import DEFAULT_PART_GAP, PartRegion, PartSpace, build_part_space, part_space_for
 
 __all__ = [
     "CONSTANT_GROUP_RTOL",
+    "DEFAULT_PART_GAP",
     "DEFAULT_TOLERANCE",
     "DIRECT_MAX_VERTICES",
     "FIELD_MATCH_ATOL",
     "MOLLIFY_FACTOR",
     "DescriptorField",
+    "PartRegion",
+    "PartSpace",
     "background_descriptor",
+    "build_part_space",
     "cotan_laplacian",
     "descriptor_functions",
     "embed",
@@ -37,4 +42,5 @@ __all__ = [
     "mesh_content_hash",
     "mesh_laplacian",
     "normalize_to_unit_area",
+    "part_space_for",
 ]
