@@ -185,6 +185,8 @@ def test_bad_input_is_refused_naming_it():
     space = build_part_space(["toolcap", "shaft"], [field, field])
     with pytest.raises(DonGymError, match="part 'flange' is not in this descriptor space"):
         space.map_descriptors("flange", field)
+    with pytest.raises(DonGymError, match="instance 2 is in the image but not in instance_parts"):
+        space.part_image(np.array([[0, 1], [2, 1]]), {1: "shaft"})
     with pytest.raises(DonGymError, match="part_image"):
         space.map_descriptor_image(np.zeros((4, 5, 3)), np.full((4, 5), 3))
 
@@ -272,7 +274,8 @@ def test_rendering_own_fields_then_mapping_equals_rendering_mapped_fields(scene,
     own = MultiPartDescriptorRenderer(meshes, [f.vertex_descriptors for f in fields], space.background)
     own_frame = own.render(INTRINSICS, instances)
     frame = renderer.render(INTRINSICS, instances)
-    part_image = own_frame.instance_ids  # instance k is of part k here
+    part_image = space.part_image(own_frame.instance_ids, {1: "toolcap", 2: "shaft"})
+    assert np.array_equal(part_image, own_frame.instance_ids)  # instance k is of part k here
     np.testing.assert_allclose(
         space.map_descriptor_image(own_frame.descriptor_image, part_image), frame.descriptor_image, rtol=0, atol=1e-6
     )

@@ -168,6 +168,27 @@ class PartSpace:
                 out[on] = self.map_descriptors(i, image[on])
         return out
 
+    def part_image(self, instance_ids: np.ndarray, instance_parts: Mapping[int, int | str]) -> np.ndarray:
+        """Per-pixel part labels of an instance id image, for :meth:`map_descriptor_image`.
+
+        Args:
+            instance_ids: (H, W) int, the instance seen at each pixel, 0 = none (e.g.
+                ``RenderedInstances.instance_ids`` or a dataset's instance image).
+            instance_parts: the part (name or index) of every instance id that occurs.
+
+        Returns:
+            (H, W) int32, the part's index in :attr:`parts` plus 1, 0 where ``instance_ids`` is 0.
+        """
+        ids = np.asarray(instance_ids)
+        if ids.ndim != 2 or not np.issubdtype(ids.dtype, np.integer):
+            raise DonGymError(f"instance_ids: expected an (H, W) integer image, got {ids.dtype} {ids.shape}")
+        labels = np.zeros(ids.shape, dtype=np.int32)
+        for instance in np.unique(ids[ids != 0]):
+            if int(instance) not in instance_parts:
+                raise DonGymError(f"instance {int(instance)} is in the image but not in instance_parts")
+            labels[ids == instance] = self.index(instance_parts[int(instance)]) + 1
+        return labels
+
     def region_distances(self) -> tuple[np.ndarray, np.ndarray]:
         """Euclidean distances in the separated dimensions: ``(between, to_background)``.
 
