@@ -277,9 +277,9 @@ def import_bop(
         raise DatasetError(f"{out}: exists and is not an empty directory; pass --overwrite to replace it")
     info_path = root / "models" / "models_info.json"
     models_info = bop.read_models_info(info_path) if info_path.is_file() else {}
+    images, objects = _scan(root, split, obj_id, scenes)
     if not model_path(root, obj_id).is_file():
         raise MeshError(f"{model_path(root, obj_id)}: model of --object {obj_id} not found")
-    images, objects = _scan(root, split, obj_id, scenes)
     meshes = {o: load_bop_model_m(root, o, models_info) for o in sorted(objects)}
     say = progress or (lambda _line: None)
 

@@ -124,9 +124,7 @@ def write_bop_dataset(
             "cam_R_w2c": T_camera_world[:3, :3],
             "cam_t_w2c": T_camera_world[:3, 3] * 1000.0,
         }
-        gt[im_id] = [
-            {"obj_id": o, "cam_R_m2c": T[:3, :3], "cam_t_m2c": T[:3, 3] * 1000.0} for o, T in poses.items()
-        ]
+        gt[im_id] = [{"obj_id": o, "cam_R_m2c": T[:3, :3], "cam_t_m2c": T[:3, 3] * 1000.0} for o, T in poses.items()]
         if with_masks:
             for gt_id, o in enumerate(poses):
                 bop.write_mask(bop.mask_path(scene, "mask", im_id, gt_id), masks[o][0])
