@@ -70,16 +70,16 @@ class _Image:
     annotations: list[dict[str, Any]]
 
 
-def model_path(root: Path, obj_id: int) -> Path:
-    return Path(root) / "models" / f"obj_{obj_id:06d}.ply"
+def model_path(root: Path, obj_id: int, models_dir: str = "models") -> Path:
+    return Path(root) / models_dir / f"obj_{obj_id:06d}.ply"
 
 
 def load_bop_model_m(
-    root: Path, obj_id: int, models_info: dict[int, dict[str, Any]] | None
+    root: Path, obj_id: int, models_info: dict[int, dict[str, Any]] | None, models_dir: str = "models"
 ) -> tuple[np.ndarray, np.ndarray]:
     """Vertices in metres and faces of object ``obj_id``'s model, refused (MeshError naming the file) when
     missing, without faces, or evidently not in millimetres (by its diameter, and against models_info.json)."""
-    path = model_path(root, obj_id)
+    path = model_path(root, obj_id, models_dir)
     vertices_mm, faces = bop.read_ply_model(path)
     diameter = bop.model_diameter(vertices_mm)
     if diameter < MIN_DIAMETER_MM:
@@ -254,10 +254,12 @@ def import_bop(
     symmetric: bool = True,
     overwrite: bool = False,
     progress: Callable[[str], None] | None = None,
+    models_dir: str = "models",
 ) -> BopImportResult:
     """Write object ``obj_id`` of ``root/split`` (scenes ``scenes``, default all) as a don_gym dataset at
-    ``out``. All of it or nothing: the dataset is written into a temporary directory beside ``out`` and
-    renamed into place when complete; every user error (DatasetError/MeshError) names its file.
+    ``out``, reading models from ``root/models_dir``. All of it or nothing: the dataset is written into a
+    temporary directory beside ``out`` and renamed into place when complete; every user error
+    (DatasetError/MeshError) names its file.
 
     Images whose camera matrix differs from the others of their BOP scene go to a don_gym scene of their
     own (one camera matrix per scene); a group of a single image is skipped (two views are needed for
@@ -275,19 +277,19 @@ def import_bop(
         raise DatasetError(f"{root}: BOP dataset directory not found")
     if out.exists() and not (out.is_dir() and (overwrite or not any(out.iterdir()))):
         raise DatasetError(f"{out}: exists and is not an empty directory; pass --overwrite to replace it")
-    info_path = root / "models" / "models_info.json"
+    info_path = root / models_dir / "models_info.json"
     models_info = bop.read_models_info(info_path) if info_path.is_file() else {}
     images, objects = _scan(root, split, obj_id, scenes)
-    if not model_path(root, obj_id).is_file():
-        raise MeshError(f"{model_path(root, obj_id)}: model of --object {obj_id} not found")
-    meshes = {o: load_bop_model_m(root, o, models_info) for o in sorted(objects)}
+    if not model_path(root, obj_id, models_dir).is_file():
+        raise MeshError(f"{model_path(root, obj_id, models_dir)}: model of --object {obj_id} not found")
+    meshes = {o: load_bop_model_m(root, o, models_info, models_dir) for o in sorted(objects)}
     say = progress or (lambda _line: None)
 
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
     try:
         name = f"obj_{obj_id:06d}"
-        shutil.copyfile(model_path(root, obj_id), tmp / f"{name}.ply")
+        shutil.copyfile(model_path(root, obj_id, models_dir), tmp / f"{name}.ply")
         model = load_object(tmp / f"{name}.ply", scale=0.001)
         field_ = embed(model, dim=descriptor_dim, symmetric=symmetric)
         field_.save(tmp / FIELD_FILE)
@@ -354,7 +356,7 @@ def import_bop(
             )
         part = {
             "name": name,
-            "object_source": str(model_path(root, obj_id).resolve()),
+            "object_source": str(model_path(root, obj_id, models_dir).resolve()),
             "object_scale": 0.001,
             "object_signature": model.shape_signature.to_dict(),
             "mesh_hash": model.mesh_hash,

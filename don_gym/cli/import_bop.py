@@ -25,6 +25,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--object", type=positive_int, required=True, help="BOP object id (obj_id) of the part")
     parser.add_argument("--out", required=True, help="output dataset directory (new or empty)")
     parser.add_argument("--scenes", type=int, nargs="+", help="BOP scene ids to import; default all")
+    parser.add_argument(
+        "--models-dir", default="models", help="folder under ROOT with obj_NNNNNN.ply and models_info.json"
+    )
     parser.add_argument("--dim", type=positive_int, default=3, help="descriptor dimension D")
     parser.add_argument("--no-symmetry", action="store_true", help="plain Laplacian Eigenmaps (no GISIF merging)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset at --out")
@@ -45,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
         descriptor_dim=args.dim,
         symmetric=not args.no_symmetry,
         overwrite=args.overwrite,
+        models_dir=args.models_dir,
     )
     for note in result.notes:
         print(f"note: {note}")
