@@ -466,3 +466,38 @@ def plot_learning_curve(
     fig.suptitle(title)
     fig.tight_layout(rect=(0.0, min(0.6, 0.22 * rows / (3.6 + 0.22 * rows) + 0.02), 1.0, 1.0))
     return _save(fig, path, dpi=110)
+
+
+def plot_pose_recalls(
+    curves: Mapping[str, Mapping[str, Any]],
+    path: str | Path,
+    *,
+    title: str | None = None,
+) -> Path:
+    """Recall against threshold of 6D pose estimates, BOP's two panels: MSSD (fraction of the diameter) and
+    MSPD (px at 640 px width).
+
+    ``curves``: {method: {"mssd_thresholds", "mssd_recall", "mspd_thresholds_px", "mspd_recall", "ar"}} as
+    :func:`don_gym.pose_metrics.pose_recalls` gives them; the legend names each method with its AR.
+    """
+    if not curves:
+        raise DonGymError("plot_pose_recalls: no method to draw")
+    fig = _new_figure(10.0, 3.8, dpi=110, layout="constrained")
+    axes = fig.subplots(1, 2)
+    panels = (
+        ("mssd_thresholds", "mssd_recall", "MSSD threshold (fraction of the diameter)"),
+        ("mspd_thresholds_px", "mspd_recall", "MSPD threshold (px at 640 px width)"),
+    )
+    for ax, (x_key, y_key, xlabel) in zip(axes, panels, strict=True):
+        for method, curve in curves.items():
+            ar = curve.get("ar")
+            label = method if ar is None or not np.isfinite(ar) else f"{method} (AR {ar:.2f})"
+            ax.plot(curve[x_key], curve[y_key], marker="o", markersize=3, label=label)
+        ax.set_ylim(0.0, 1.02)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("recall")
+        ax.grid(True, alpha=0.25)
+    axes[-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return _save(fig, path)

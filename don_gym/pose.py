@@ -27,6 +27,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from don_gym.bop import model_diameter
 from don_gym.descriptor_sources import FIELD_METHODS, DescriptorSource
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics, backproject_depth, make_transform, rotation_between, transform_points
@@ -247,8 +248,6 @@ def pose_targets(
         descriptors, points, rings, sides = table["descriptors"], table["points"], table["rings"], table["sides"]
     else:
         descriptors, points = chosen[valid].astype(np.float32), np.asarray(model.mesh.vertices)[valid]
-    from don_gym.pose_metrics import model_diameter
-
     return PoseTargets(
         descriptors=descriptors,
         points=np.asarray(points, dtype=np.float64),
@@ -692,6 +691,13 @@ def estimate_pose(
     if depth_m is not None:
         mask = mask & (depth_m > 0)
     v, u = np.nonzero(mask)
+    # Pixels within the distance limit of some target first (without a mask that is every pixel, of
+    # which the part may be a small share), then a sample of them for the ratio test.
+    limit = targets.max_distance if config.max_descriptor_distance is None else config.max_descriptor_distance
+    near = cKDTree(targets.descriptors).query(image[v, u][:, list(targets.channels)], k=1)[0] <= limit
+    v, u = v[near], u[near]
+    on_part = np.zeros_like(mask)
+    on_part[v, u] = True
     if len(u) > config.max_pixels:
         chosen = rng.choice(len(u), config.max_pixels, replace=False)
         u, v = u[chosen], v[chosen]
@@ -754,7 +760,7 @@ def estimate_pose(
         return result(T, int(inliers.sum()), "rings" if targets.symmetric else "kabsch")
     # ICP on all the part's depth points (not only the matched ones): the geometry refines what the
     # descriptors located, and points off the part stay beyond max_distance of the placed model.
-    dv, du = np.nonzero(mask)
+    dv, du = np.nonzero(on_part if object_mask is None and targets.background is None else mask)
     if len(du) > config.max_pixels:
         chosen = rng.choice(len(du), config.max_pixels, replace=False)
         du, dv = du[chosen], dv[chosen]

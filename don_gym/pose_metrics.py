@@ -24,9 +24,10 @@ from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
-from scipy.spatial import ConvexHull, cKDTree
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from don_gym.bop import model_diameter  # noqa: F401  (the one home of BOP's diameter; re-exported)
 from don_gym.errors import DonGymError
 
 #: MSSD thresholds of the BOP Challenge, as fractions of the object's diameter: 0.05, 0.10, ..., 0.50.
@@ -109,21 +110,6 @@ def object_symmetries(model: Any, max_sym_disc_step: float = MAX_SYM_DISC_STEP) 
     if model.symmetry_axis is None:
         return np.eye(4)[None]
     return symmetry_transformations((), [(model.symmetry_axis, model.center_of_mass)], max_sym_disc_step)
-
-
-def model_diameter(points: np.ndarray) -> float:
-    """Largest distance between two model points (N, 3), in their unit (BOP's ``diameter``)."""
-    points = _as_points(points)
-    if len(points) > 3:
-        try:
-            points = points[ConvexHull(points).vertices]
-        except Exception:  # noqa: BLE001  (flat or degenerate point sets: use them all)
-            pass
-    best = 0.0
-    for start in range(0, len(points), 1024):
-        chunk = points[start : start + 1024]
-        best = max(best, float(np.sqrt(((chunk[:, None, :] - points[None, :, :]) ** 2).sum(-1).max())))
-    return best
 
 
 def _symmetric_gt_points(T_gt: np.ndarray, points: np.ndarray, symmetries: np.ndarray) -> np.ndarray:
