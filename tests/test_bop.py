@@ -180,6 +180,43 @@ def test_import_correspondences_follow_the_part(imported: Path) -> None:
         assert np.median(error) < 0.003 and np.max(error) < 0.01
 
 
+def test_import_of_two_instances_gray_jpeg_another_camera_and_models_dir(tmp_path: Path) -> None:
+    from don_gym.import_bop import import_bop
+    from don_gym.torch_data import CorrespondencePairs
+
+    root = tmp_path / "bop"
+    bop_scenes.write_bop_dataset(
+        root, images=5, second_toolcap=True, gray_jpeg=True, odd_camera=2, models_dir="models_cad", with_masks=False
+    )
+    result = import_bop(root, "test", 1, tmp_path / "data", models_dir="models_cad")
+    assert result.frames == 4 and any("image 2: skipped" in note for note in result.notes), result.notes
+    data = DONDataset(tmp_path / "data")
+    record = data.scenes[0]
+    assert record.metadata["bop"]["im_ids"] == [0, 1, 3, 4]
+    assert [i["instance_id"] for i in record.instances] == [1, 3]  # BOP's gt_id + 1: the box is gt_id 1
+    field = DescriptorField.load(tmp_path / "data" / "descriptor_field.npz")
+    renderer = DescriptorRenderer(data.object_model().mesh, field.vertex_descriptors, field.background)
+    for frame in range(record.num_frames):
+        rgb = data.image(0, frame, "rgb")
+        assert np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 1], rgb[..., 2])
+        instances = instance_mask(data, 0, frame)
+        assert (instances == 1).sum() > 20 and (instances == 3).sum() > 20
+        np.testing.assert_array_equal(data.image(0, frame, "mask"), instances > 0)
+        descriptor = data.image(0, frame, "descriptor")
+        for instance_id, pose in record.T_camera_object(frame).items():
+            expected = renderer.render(record.intrinsics, pose, visible_mask=instances == instance_id)
+            np.testing.assert_allclose(
+                descriptor[expected.object_mask], expected.descriptor_image[expected.object_mask], atol=1e-4
+            )
+        # The self-supervised matches are drawn on the reference instance only, whose pose defines the frame.
+        assert not (data.image(0, frame, "mask_fused") & (instances != 1)).any()
+    pairs = CorrespondencePairs(str(tmp_path / "data"), length=2, seed=1)
+    for i in range(2):
+        _, a, _ = pairs._pick_pair(np.random.default_rng([1, i]))
+        uv = pairs[i]["correspondences"].matches_a
+        assert len(uv) and np.all(instance_mask(data, 0, a)[uv[:, 1], uv[:, 0]] == 1)
+
+
 def test_version_1_scenes_read_as_one_instance(imported: Path, tmp_path: Path) -> None:
     copy = tmp_path / "v1"
     shutil.copytree(imported, copy)
