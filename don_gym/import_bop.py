@@ -13,6 +13,7 @@ instance, exactly, without a world frame. Layout: ``docs/dataset_format.md``, se
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import tempfile
@@ -275,8 +276,11 @@ def import_bop(
         raise DatasetError(f"--object {obj_id!r}: expected a BOP object id (integer >= 1)")
     if not root.is_dir():
         raise DatasetError(f"{root}: BOP dataset directory not found")
-    if out.exists() and not (out.is_dir() and (overwrite or not any(out.iterdir()))):
-        raise DatasetError(f"{out}: exists and is not an empty directory; pass --overwrite to replace it")
+    if out.exists() and not (out.is_dir() and not any(out.iterdir())):
+        if not out.is_dir() or not overwrite:
+            raise DatasetError(f"{out}: exists and is not an empty directory; pass --overwrite to replace a dataset")
+        if not (out / DATASET_FILE).is_file():
+            raise DatasetError(f"{out}: holds no {DATASET_FILE}, so it is not a dataset --overwrite may replace")
     info_path = root / models_dir / "models_info.json"
     models_info = bop.read_models_info(info_path) if info_path.is_file() else {}
     images, objects = _scan(root, split, obj_id, scenes)
@@ -285,6 +289,7 @@ def import_bop(
     meshes = {o: load_bop_model_m(root, o, models_info, models_dir) for o in sorted(objects)}
     say = progress or (lambda _line: None)
 
+    made = [p for p in (out.parent, *out.parent.parents) if not p.exists()]
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
     try:
@@ -400,9 +405,13 @@ def import_bop(
         if out.exists():
             shutil.rmtree(out)
         os.rename(tmp, out)
+        made = []
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
+        for folder in made:  # the folders made for --out, innermost first: nothing is left behind
+            with contextlib.suppress(OSError):
+                folder.rmdir()
     return BopImportResult(out, scene_index, frames, notes)
 
 

@@ -329,7 +329,7 @@ def test_bad_input_is_one_line_naming_the_file_and_nothing_is_written(
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
     assert message in err, err
-    assert not out.exists() and not (out.parent.exists() and any(out.parent.iterdir()))
+    assert not out.parent.exists()
 
 
 # --- export -------------------------------------------------------------------------------------------
@@ -413,3 +413,19 @@ def test_intrinsics_check_uses_the_image_size() -> None:
     assert _intrinsics(image, 64, 48) == CameraIntrinsics(70.0, 70.0, 31.5, 23.5, 64, 48)
     with pytest.raises(DatasetError, match="does not fit cam_K"):
         _intrinsics(image, 30, 20)
+
+
+def test_overwrite_replaces_a_dataset_and_nothing_else(bop_root: Path, tmp_path: Path, capsys) -> None:
+    argv = ["import-bop", str(bop_root), "--split", "test", "--object", "2", "--out"]
+    other = tmp_path / "notes"
+    other.mkdir()
+    (other / "mine.txt").write_text("keep")
+    for extra in ([], ["--overwrite"]):
+        assert main([*argv, str(other), *extra]) == 2
+        assert "mine.txt" not in capsys.readouterr().err and (other / "mine.txt").read_text() == "keep"
+    data = tmp_path / "data"
+    assert main([*argv, str(data)]) == 0
+    assert main([*argv, str(data)]) == 2 and "--overwrite" in capsys.readouterr().err
+    (data / "stale.txt").write_text("from before")
+    assert main([*argv, str(data), "--overwrite"]) == 0
+    assert not (data / "stale.txt").exists() and DONDataset(data).info["bop"]["obj_id"] == 2
