@@ -520,7 +520,8 @@ class DONDataset:
     def object_model(self):  # -> ObjectModel; imported lazily like descriptor_field
         """The dataset's object loaded as it was built (same scale; a mesh file from ``object_source`` when
         ``object`` was a relative path that is not found from here), checked to be the recorded part: by its
-        shape signature, or by mesh hash in a dataset written before signatures. DatasetError otherwise."""
+        shape signature, or by mesh hash in a dataset written before signatures. DatasetError otherwise.
+        ``object_symmetry_axis`` of ``dataset.json`` (BOP imports) declares a mesh file's symmetry axis."""
         from don_gym.errors import DonGymError
         from don_gym.objects import builtin_names, load_object
 
@@ -540,6 +541,13 @@ class DONDataset:
                 f"{self.root}: was built from a {self.info['object']!r} part that differs from the one that loads "
                 f"now ({', '.join(differences[:3])}: now vs recorded)"
             )
+        axis = self.info.get("object_symmetry_axis")
+        if axis is not None and model.symmetry_axis is None:
+            # A mesh file declares no symmetry; an import may know one (BOP's models_info.json).
+            import dataclasses
+
+            unit = np.asarray(axis, dtype=np.float64).reshape(3)
+            model = dataclasses.replace(model, symmetry_axis=unit / np.linalg.norm(unit))
         return model
 
 

@@ -245,6 +245,20 @@ def symmetry_disagreements(
     return notes
 
 
+def _continuous_axis_through_centre(model_info: dict[str, Any], center_of_mass_m: np.ndarray) -> list[float] | None:
+    """The axis (unit, model frame) of the part's one continuous symmetry when it passes within 0.5 mm of the
+    centre of mass (don_gym measures errors "mod symmetry" about such an axis), else None."""
+    symmetries = model_info.get("symmetries_continuous", [])
+    if len(symmetries) != 1:
+        return None
+    axis = np.asarray(symmetries[0]["axis"], dtype=np.float64)
+    axis = axis / np.linalg.norm(axis)
+    offset_m = np.asarray(symmetries[0]["offset"], dtype=np.float64) / 1000.0
+    if np.linalg.norm(np.cross(np.asarray(center_of_mass_m) - offset_m, axis)) > 0.0005:
+        return None
+    return [float(v) for v in axis]
+
+
 def import_bop(
     root: str | Path,
     split: str,
@@ -359,6 +373,7 @@ def import_bop(
             raise DatasetError(
                 f"{root / split}: --object {obj_id}: no BOP scene has two images with one cam_K; nothing to import"
             )
+        symmetry_axis = _continuous_axis_through_centre(models_info.get(obj_id, {}), model.center_of_mass)
         part = {
             "name": name,
             "object_source": str(model_path(root, obj_id, models_dir).resolve()),
@@ -381,6 +396,7 @@ def import_bop(
                 "object_signature": part["object_signature"],
                 "mesh_hash": part["mesh_hash"],
                 "parts": [part],
+                "object_symmetry_axis": symmetry_axis,
                 "scenes": scene_index,
                 "frames_per_scene": max(frame_counts),
                 "image_size": list(image_size or (0, 0)),
