@@ -87,10 +87,13 @@ class GraspPlaceScript:
     the hand yaw is parametrised by the wrist angle (joint 7) so the arm never winds past its limits.
     """
 
-    def __init__(self, sim: Bullet, robot: Panda, task: PickPlaceTask):
+    def __init__(self, sim: Bullet, robot: Panda, task: PickPlaceTask, open_width_m: float = MAX_WIDTH_M):
         self.sim = sim
         self.robot = robot
         self.task = task
+        #: Finger opening (m) on the way down to the grasp: fully open alone on a table; in a pile, just wider
+        #: than the part, so that the fingers find room between its neighbours.
+        self.open_width_m = float(open_width_m)
         self.base_xy = robot.base_position[:2]
         self.trace = ScriptTrace()
         self._tcp = robot.tcp_pose()[:3, 3].copy()
@@ -202,7 +205,7 @@ class GraspPlaceScript:
             return any(robot.finger_contacts(task.table_id))
 
         self.trace.phases.append("approach")
-        robot.command_gripper(MAX_WIDTH_M)
+        robot.command_gripper(self.open_width_m)
         self.move(np.array([grasp[0], grasp[1], TABLE_TOP_Z_M + APPROACH_HEIGHT_M]), wrist_rad, FREE_SPEED_M_S)
         if last == "approach":
             return

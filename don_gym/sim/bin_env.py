@@ -1,0 +1,448 @@
+"""The bin-picking Gymnasium env (:class:`BinPickEnv`): the pick env's Panda, wrist RGB-D camera and cradle,
+with a bin holding a pile of several part instances (:class:`~don_gym.sim.bin_task.BinPickTask`) instead of
+one part. Registered as ``DONBinPick-v0``, ``DONToolcapBinPick-v0`` and ``DONShaftBinPick-v0`` by ``import don_gym``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from don_gym.errors import DonGymError
+from don_gym.geometry import CameraIntrinsics
+from don_gym.objects import ObjectModel, builtin_names, load_object, part_name
+from don_gym.sim.backdrop import BACKDROP_SETS, Backdrop
+from don_gym.sim.bin_task import (
+    DEFAULT_PARTS,
+    DEFAULT_TARGET,
+    BinPickTask,
+    Instance,
+    check_bin_parts,
+    pregrasp_width_m,
+)
+from don_gym.sim.bullet import Bullet
+from don_gym.sim.camera import check_renderer, decode_segmentation, render_camera, specular_map
+from don_gym.sim.env import (
+    BACKGROUNDS,
+    CONTROL_MODES,
+    CONTROL_STEPS,
+    DEPTH_OBS_MAX_M,
+    FAR_M,
+    NEAR_M,
+    SOLVER_ITERATIONS,
+    TIME_STEP_S,
+    PickPlaceEnv,
+    _as_size,
+    _check_choice,
+    _is_int,
+)
+from don_gym.sim.robot import FINGER_JOINTS, Panda, wrap_angle
+from don_gym.sim.script import GraspPlaceScript
+from don_gym.sim.sensor import get_sensor, sample_calibration_error, simulate_depth
+from don_gym.sim.task import OBSERVATION_YAW_RAD, observation_camera_position
+
+#: ``info["outcome"]`` of a step, worst first: nothing lifted; a target lifted but not placed in the cradle
+#: as it should be; a target placed; a part that is not the target lifted.
+BIN_OUTCOMES = ("fail", "grasp_only", "grasp_and_place", "wrong_part")
+#: ``info["end_reason"]`` once an episode is over.
+END_REASONS = ("cleared", "failed_attempts", "step_limit")
+#: Grasp mode: default step limit per instance in the pile; ee mode: per target instance.
+GRASP_STEPS_PER_INSTANCE = 2
+EE_STEPS_PER_TARGET = 200
+
+
+def _resolve_parts(parts: Any, target: Any, part_scales: Any) -> tuple[dict[str, ObjectModel], dict[str, int], str]:
+    """``(models, counts, target)`` keyed by part name (:func:`~don_gym.objects.part_name`), in the order given;
+    DonGymError naming the input for anything a user can get wrong, before and after loading the meshes."""
+    example = "e.g. {'toolcap': 3, 'shaft': 2}"
+    if parts is None:
+        parts = DEFAULT_PARTS
+    if not isinstance(parts, Mapping) or not parts:
+        raise DonGymError(f"parts={parts!r}: expected a dict of part (built-in name or mesh file) -> count, {example}")
+    if part_scales is not None and not isinstance(part_scales, Mapping):
+        raise DonGymError(
+            f"part_scales={part_scales!r}: expected None or a dict of part -> scale (mesh units to metres)"
+        )
+    part_scales = dict(part_scales or {})
+    unknown_scales = [key for key in part_scales if key not in parts]
+    if unknown_scales:
+        raise DonGymError(f"part_scales: {unknown_scales[0]!r} is not among the parts; expected keys of {list(parts)}")
+    counts_by_key: dict[str, int] = {}
+    for key, count in parts.items():
+        if not isinstance(key, (str, Path)) or not str(key):
+            raise DonGymError(
+                f"parts: key {key!r}: expected a built-in name ({', '.join(builtin_names())}) or a mesh path"
+            )
+        if not _is_int(count) or count < 0:
+            raise DonGymError(f"parts: count {count!r} of {str(key)!r}: expected an integer >= 0")
+        key = str(key)
+        if key not in builtin_names() and not Path(key).expanduser().is_file():
+            raise DonGymError(
+                f"parts: {key!r} is neither a built-in part ({', '.join(builtin_names())}) nor an existing mesh file"
+            )
+        counts_by_key[key] = int(count)
+    names = {key: part_name(key) for key in counts_by_key}
+    if len(set(names.values())) < len(names):
+        raise DonGymError(
+            f"parts={list(counts_by_key)}: two parts share the name {sorted(names.values())}; expected distinct names"
+        )
+    present = [key for key, count in counts_by_key.items() if count > 0]
+    target_key = (
+        next((key for key in present if target in (key, names[key])), None) if isinstance(target, (str, Path)) else None
+    )
+    if target_key is None:
+        raise DonGymError(f"target={target!r} is not among the parts; expected one of {[names[k] for k in present]}")
+    models = {names[key]: load_object(key, scale=part_scales.get(key)) for key in counts_by_key}
+    counts = {names[key]: count for key, count in counts_by_key.items()}
+    check_bin_parts(counts, models)
+    return models, counts, names[target_key]
+
+
+class BinPickEnv(PickPlaceEnv):
+    """Panda picking part instances out of a bin, one after another, into the handover cradle, seen through a
+    wrist RGB-D camera.
+
+    ## Description
+    A bin (a tray of 0.17 x 0.24 m inside with 3.5 cm walls, :mod:`~don_gym.sim.bin_task`) stands on the table
+    under the observation pose; the parts of ``parts`` are dropped into it and settle into a pile. The robot
+    must take out every instance of the ``target`` part, one per pick, and place each into the cradle as in
+    :class:`~don_gym.sim.env.PickPlaceEnv`: lying, its +axis along the cradle's target direction. A picked
+    instance is cleared (taken out of the scene) before the next step; so is any instance that left the bin
+    (dropped beside it, pushed over a wall, placed in the cradle). Physics, robot, camera, sensor presets,
+    renderers and backgrounds are those of the pick env.
+
+    ## Action Space
+    - ``control="grasp"`` (one pick attempt per step): ``Box(4)`` ``[x, y, z, yaw]``, the grasp point in the
+      world (m) and the world yaw (rad) of the +axis of the part the agent means to pick, as in the pick env.
+      The scripted program (:class:`~don_gym.sim.script.GraspPlaceScript`) grasps there across the axis and,
+      if something is lifted, carries it to the cradle and places it (offset by the grasp point's axial position
+      on the part nearest to the grasp point). The arm then returns to the observation pose.
+    - ``control="ee"`` (25 Hz, for RL): ``Box(-1, 1, (5,))`` as in the pick env.
+
+    ## Observation Space
+    That of the pick env: ``rgb``, ``depth`` (metres, 0 = no return), ``camera_intrinsics``, ``camera_pose``
+    (reported, with the episode's hand-eye calibration error), ``joint_positions``, ``ee_pose``,
+    ``gripper_width``. True poses and segmentations are only in ``info`` and the oracle methods.
+
+    ## Rewards
+    1.0 for a step whose outcome is ``grasp_and_place`` (a target instance placed), else 0.0 (``reward_type``
+    "sparse", the only one).
+
+    ## Starting State
+    ``reset(seed=...)`` drops the pile: in a random order, each instance lying on its side at a random yaw and
+    roll, tilted up to 20 degrees, at a random spot inside the walls, above the instances dropped before it
+    where their boxes overlap; then the pile settles under gravity (up to 3 s). A pile from which a part bounced
+    out is drawn again. The same seed gives the same pile, bit for bit, and the same sensor noise and
+    calibration error. The wrist camera looks down from 0.45 m above the bin, the gripper open.
+
+    ## Episode End
+    Terminated when no target instance is left in play (``end_reason`` "cleared"), or in grasp mode after
+    ``max_failed_attempts`` steps in a row whose outcome is ``fail`` (nothing lifted; "failed_attempts").
+    Truncated after ``max_steps`` steps ("step_limit").
+
+    ## Arguments
+    - ``parts``: part -> instance count (default ``{"toolcap": 3, "shaft": 2}``); a part is a built-in name or
+      a mesh file path, as the pick env's ``object``. The parts must cover at most half the bin's floor lying down.
+    - ``target``: the part to pick (a key of ``parts`` or its part name; default "toolcap").
+    - ``part_scales``: part -> factor from mesh-file units to metres (None: as the pick env's ``object_scale=None``).
+    - ``control``, ``image_size``, ``observe_images``, ``sensor``, ``renderer``, ``render_mode``, ``render_size``,
+      ``background``: as in the pick env.
+    - ``max_steps``: step limit (None: 2 per instance in grasp mode, 200 per target instance in ee mode).
+    - ``max_failed_attempts``: grasp mode: failed attempts in a row that end the episode (default 3).
+
+    ## Info
+    After reset and every step: ``outcome`` (:data:`BIN_OUTCOMES`; "fail" after a reset and in ee mode while
+    nothing is judged), ``is_success`` (outcome ``grasp_and_place``), ``instance`` (id of the instance lifted,
+    or None), ``part`` (its part name, or None), ``targets_left``, ``target``, ``cleared`` (ids of instances
+    taken out this step, picked or not), ``attempts`` (steps so far), ``failed_in_a_row``, ``end_reason``
+    (:data:`END_REASONS` or None), ``instances`` (:meth:`instance_poses`), ``instance_segmentation`` ((H, W)
+    int32 instance id per pixel of the wrist image, -1 elsewhere; None without images), ``T_world_camera``,
+    ``T_camera_reportedcamera``, ``sensor``, ``renderer``, ``background``, ``backdrop``; in grasp mode after a
+    step also ``lifted``, ``placement_distance_m``, ``placement_axis_error_rad`` of the instance in focus.
+
+    ## For agents and oracles
+    - :meth:`instance_poses`: the true pose, part name, id, grasp point and visible pixel count of every
+      instance in play (``visible_only=True``: those the last wrist image shows).
+    - :meth:`instance_segmentation`: the last wrist image's instance ids per pixel.
+    - :meth:`oracle_action`: the grasp action of a perfect perception for an instance (default: the target
+      instance whose grasp point lies highest).
+    - Attributes: ``target`` (part name), ``part_names`` (in instance-id order), ``models`` (part name ->
+      :class:`~don_gym.objects.ObjectModel`), ``task`` (:class:`~don_gym.sim.bin_task.BinPickTask`).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 25}
+
+    def __init__(
+        self,
+        parts: Mapping[str | Path, int] | None = None,
+        target: str = DEFAULT_TARGET,
+        part_scales: Mapping[str | Path, float] | None = None,
+        control: str = "grasp",
+        image_size: tuple[int, int] | None = (160, 120),
+        observe_images: bool = True,
+        sensor: str = "d435",
+        renderer: str = "tiny",
+        reward_type: str = "sparse",
+        render_mode: str | None = None,
+        render_size: tuple[int, int] = (320, 240),
+        max_steps: int | None = None,
+        max_failed_attempts: int = 3,
+        background: str = "plain",
+    ):
+        gym.Env.__init__(self)
+        _check_choice(control, "control", CONTROL_MODES)
+        _check_choice(reward_type, "reward_type", ("sparse",))
+        _check_choice(background, "background", tuple(BACKGROUNDS))
+        if render_mode is not None and not (isinstance(render_mode, str) and render_mode == "rgb_array"):
+            raise DonGymError(f"render_mode={render_mode!r} is unsupported; expected None or 'rgb_array'")
+        if not isinstance(observe_images, (bool, np.bool_)):
+            raise DonGymError(f"observe_images={observe_images!r}: expected True or False")
+        if max_steps is not None and (not _is_int(max_steps) or max_steps < 1):
+            raise DonGymError(f"max_steps={max_steps!r}: expected None or a positive integer number of steps")
+        if not _is_int(max_failed_attempts) or max_failed_attempts < 1:
+            raise DonGymError(f"max_failed_attempts={max_failed_attempts!r}: expected a positive integer")
+        image_size = _as_size(image_size, "image_size")
+        self.render_size = _as_size(render_size, "render_size", allow_none=False)
+        self.sensor = get_sensor(sensor)
+        check_renderer(renderer)
+        self.models, self.counts, self.target = _resolve_parts(parts, target, part_scales)
+        self.control = control
+        self.reward_type = reward_type
+        self.render_mode = render_mode
+        self.max_failed_attempts = int(max_failed_attempts)
+        if max_steps is None:
+            per = GRASP_STEPS_PER_INSTANCE * sum(self.counts.values())
+            max_steps = per if control == "grasp" else EE_STEPS_PER_TARGET * self.counts[self.target]
+        self.max_steps = int(max_steps)
+        self.image_size = image_size if observe_images else None
+        self.intrinsics = CameraIntrinsics.d435(*(self.image_size or (640, 480)))
+
+        self.sim = Bullet(time_step_s=TIME_STEP_S, solver_iterations=SOLVER_ITERATIONS, renderer=renderer)
+        self.renderer = self.sim.renderer
+        self.task = BinPickTask(self.sim, self.models, self.counts, self.target)
+        self.robot = Panda(self.sim)
+        self.task.attach_gripper(self.robot.body_id, FINGER_JOINTS)
+        self.part_names = [instance.part for instance in self.task.instances]
+        self.model = self.models[self.target]
+        self._pregrasp_width_m = pregrasp_width_m(self.model)
+        self.observation_arm_rad = self.robot.solve_top_down_camera(observation_camera_position(), OBSERVATION_YAW_RAD)
+        self.robot.reset(self.observation_arm_rad)
+        self.background = background
+        families = BACKDROP_SETS[BACKGROUNDS[background]] if BACKGROUNDS[background] else None
+        self._backdrop = Backdrop(self.sim, cradle_id=self.task.cradle_id) if families else None
+        self._backdrop_families = families
+        self._backdrop_rng: np.random.Generator | None = None
+        self._backdrop_settings: dict[str, Any] | None = None
+        self.sim.take_snapshot()
+
+        self.action_space = self._make_action_space()
+        self.observation_space = self._make_observation_space()
+        self._specular = {i.body.body_id: i.model.material.specular for i in self.task.instances}
+        # PyBullet body id -> instance id (-1: not an instance), for the segmentation.
+        self._instance_of_body = np.full(self.sim.client.getNumBodies() + 1, -1, dtype=np.int32)
+        for instance in self.task.instances:
+            self._instance_of_body[instance.body.body_id] = instance.instance_id
+        self._segmentation: np.ndarray | None = None
+        self._T_camera_reportedcamera = np.eye(4)
+        self._episode_over = True
+        self._steps = 0
+        self._failed_in_a_row = 0
+        self._ee_yaw_rad = 0.0
+
+    # ---------------------------------------------------------- observation
+    def _camera_images(self, T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        with self.robot.hidden(), self._quiet_renderer():
+            rgb, depth_ideal, segmentation = render_camera(
+                self.sim.client, self.intrinsics, T_world_camera, NEAR_M, FAR_M, self.renderer
+            )
+        body = decode_segmentation(segmentation)[0]
+        known = (body >= 0) & (body < len(self._instance_of_body))
+        self._segmentation = np.where(known, self._instance_of_body[np.clip(body, 0, None)], -1).astype(np.int32)
+        depth = simulate_depth(
+            depth_ideal, specular_map(segmentation, self._specular), self.intrinsics, self.sensor, self.np_random
+        )
+        return rgb, np.clip(depth, 0.0, DEPTH_OBS_MAX_M).astype(np.float32)
+
+    def instance_segmentation(self) -> np.ndarray | None:
+        """(H, W) int32: the instance id each pixel of the last wrist image shows, -1 for anything else
+        (table, bin, cradle, background); None without images."""
+        return None if self._segmentation is None else self._segmentation.copy()
+
+    def instance_poses(self, visible_only: bool = False) -> list[dict[str, Any]]:
+        """The instances in play (:meth:`~don_gym.sim.bin_task.BinPickTask.instance_poses`: ``instance``,
+        ``part``, ``T_world_object``, ``grasp_point_world``, ``in_bin``, ``visible_pixels`` in the last wrist
+        image, None without images). ``visible_only``: only those with visible pixels. True poses: for oracles,
+        evaluation and tests only."""
+        pixels = None
+        if self._segmentation is not None:
+            ids, counts = np.unique(self._segmentation[self._segmentation >= 0], return_counts=True)
+            pixels = dict(zip(ids.tolist(), counts.tolist(), strict=True))
+        poses = self.task.instance_poses(pixels)
+        return [pose for pose in poses if pose["visible_pixels"]] if visible_only else poses
+
+    def _info(self) -> dict[str, Any]:
+        return {
+            "T_world_camera": self.robot.camera_pose(),
+            "T_camera_reportedcamera": self._T_camera_reportedcamera.copy(),
+            "sensor": self.sensor_name,
+            "renderer": self.renderer,
+            "background": self.background,
+            "backdrop": None if self._backdrop_settings is None else dict(self._backdrop_settings),
+            "target": self.target,
+            "targets_left": self.task.targets_left(),
+            "attempts": self._steps,
+            "failed_in_a_row": self._failed_in_a_row,
+            "instances": self.instance_poses(),
+            "instance_segmentation": self.instance_segmentation(),
+        }
+
+    # ----------------------------------------------------------------- reset
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        if seed is not None and (not _is_int(seed) or seed < 0):
+            raise DonGymError(f"seed={seed!r}: expected a non-negative integer or None")
+        if options is not None and (not isinstance(options, Mapping) or options):
+            raise DonGymError(f"options={options!r}: the bin env takes no reset options; expected None or {{}}")
+        gym.Env.reset(self, seed=None if seed is None else int(seed))
+        self.robot.reset(self.observation_arm_rad)
+        self.task.forget_contacts()
+        self.sim.restore_snapshot()
+        self.robot.reset(self.observation_arm_rad)
+        self.task.drop_pile(self.np_random)
+        self._T_camera_reportedcamera = sample_calibration_error(self.sensor, self.np_random)
+        self._episode_over = False
+        self._steps = 0
+        self._failed_in_a_row = 0
+        self._ee_yaw_rad = float(OBSERVATION_YAW_RAD)
+        self._randomise_backdrop(seed)
+        observation = self._observation()
+        info = self._info() | {
+            "outcome": "fail",
+            "is_success": False,
+            "instance": None,
+            "part": None,
+            "cleared": [],
+            "end_reason": None,
+        }
+        return observation, info
+
+    # ------------------------------------------------------------------ step
+    def _clear_out_of_bin(self, require_rest: bool) -> list[int]:
+        """Take every instance in play that is no longer in the bin out of play (``require_rest``: only once
+        it is at rest and touches no finger, or has fallen off the table); their ids."""
+        cleared = []
+        for instance in self.task.in_play():
+            if self.task.in_bin(instance):
+                continue
+            if require_rest:
+                self.task.set_focus(instance)
+                touched = any(self.robot.contacts(self.task).fingers)
+                if not (self.task.left_workspace() or (self.task.is_at_rest() and not touched)):
+                    continue
+            self.task.clear(instance)
+            cleared.append(instance.instance_id)
+        return cleared
+
+    def _finish_step(self, outcome: str, picked: Instance | None, cleared: list[int], extra: dict[str, Any]):
+        self._steps += 1
+        targets_left = self.task.targets_left()
+        if self.control == "grasp":
+            self._failed_in_a_row = self._failed_in_a_row + 1 if outcome == "fail" else 0
+        end_reason = None
+        if targets_left == 0:
+            end_reason = "cleared"
+        elif self.control == "grasp" and self._failed_in_a_row >= self.max_failed_attempts:
+            end_reason = "failed_attempts"
+        elif self._steps >= self.max_steps:
+            end_reason = "step_limit"
+        terminated = end_reason in ("cleared", "failed_attempts")
+        truncated = end_reason == "step_limit"
+        self._episode_over = terminated or truncated
+        observation = self._observation()
+        info = self._info() | extra
+        info |= {
+            "outcome": outcome,
+            "is_success": outcome == "grasp_and_place",
+            "instance": None if picked is None else picked.instance_id,
+            "part": None if picked is None else picked.part,
+            "cleared": cleared,
+            "end_reason": end_reason,
+        }
+        return observation, float(outcome == "grasp_and_place"), terminated, truncated, info
+
+    def _step_grasp(self, action: np.ndarray):
+        # The program is written for the target part (its opening, its grasp point's axial position for the
+        # place); the judging starts at the target instance nearest the grasp and follows what is lifted.
+        aimed = self.task.nearest_instance(action[:3], part=self.target)
+        if aimed is not None:
+            self.task.set_focus(aimed)
+        script = GraspPlaceScript(self.sim, self.robot, self.task, open_width_m=self._pregrasp_width_m)
+        trace = script.run(action[:3], float(action[3]))
+        judgement = self.task.judge(trace.lifted, trace.left_workspace, self.robot.contacts(self.task))
+        picked = self.task.focus if trace.lifted else None
+        outcome = judgement.outcome
+        if picked is not None and picked.part != self.target:
+            outcome = "wrong_part"
+        # The program's last move: back to the observation pose (the arm is clear above the cradle or the bin).
+        self.robot.reset(self.observation_arm_rad)
+        self.task.settle()
+        cleared = self._clear_out_of_bin(require_rest=False)
+        extra = {
+            "lifted": judgement.lifted,
+            "placement_distance_m": judgement.placement.distance_xy_m,
+            "placement_axis_error_rad": judgement.placement.axis_error_rad,
+            "sim_time_s": trace.sim_time_s,
+        }
+        return self._finish_step(outcome, picked, cleared, extra)
+
+    def _step_ee(self, action: np.ndarray):
+        self._ee_yaw_rad = self.robot.apply_ee_action(action, self._ee_yaw_rad)
+        self.sim.step(CONTROL_STEPS)
+        outcome, picked = "fail", None
+        for instance in self.task.in_play():
+            contacts = self.task.instance_contacts(instance, self.robot.body_id, FINGER_JOINTS)
+            instance.lifted = instance.lifted or self.task.instance_held(instance, contacts)
+            if not instance.lifted:
+                continue
+            self.task.set_focus(instance)
+            if self.task.in_bin(instance) and self.task.is_at_rest() and not any(contacts.fingers):
+                instance.lifted = False  # dropped back into the bin: a part of the pile again
+                instance.rest_com_z_m = float(instance.body.center_of_mass_world[2])
+                continue
+            judgement = self.task.judge(True, self.task.left_workspace(), contacts, require_rest=True)
+            if judgement.is_success:
+                outcome, picked = ("grasp_and_place" if instance.part == self.target else "wrong_part"), instance
+                self.task.clear(instance)
+        lifted_before = {i.instance_id: i for i in self.task.in_play() if i.lifted}
+        cleared = self._clear_out_of_bin(require_rest=True)
+        for instance_id in cleared:
+            if instance_id in lifted_before and picked is None:
+                instance = lifted_before[instance_id]
+                outcome, picked = ("grasp_only" if instance.part == self.target else "wrong_part"), instance
+        if picked is not None and picked.instance_id not in cleared:
+            cleared = [picked.instance_id, *cleared]
+        return self._finish_step(outcome, picked, cleared, {})
+
+    # ------------------------------------------------------ for oracles
+    def oracle_action(self, instance: int | None = None, flip: bool = False) -> np.ndarray:  # type: ignore[override]
+        """The grasp-mode action of a perfect perception for instance ``instance`` (an id; default: the target
+        instance in play whose grasp point lies highest): its grasp point in the world and the world yaw of its
+        +axis projected on the table (``flip``: plus pi). Uses the true pose: tests and baselines only."""
+        if instance is None:
+            chosen = self.task.top_instance(self.target)
+            if chosen is None:
+                raise DonGymError("oracle_action(): no target instance is left in play; reset() first")
+        else:
+            if not _is_int(instance) or not 0 <= instance < len(self.task.instances):
+                raise DonGymError(f"instance={instance!r}: expected an instance id 0..{len(self.task.instances) - 1}")
+            chosen = self.task.instances[int(instance)]
+            if not chosen.in_play:
+                raise DonGymError(f"instance={instance!r} was cleared; expected one in play")
+        T = chosen.body.T_world_object
+        point = self.task.grasp_point_world(chosen)
+        axis = T[:3, :3] @ chosen.model.plus_axis
+        yaw = float(np.arctan2(axis[1], axis[0])) + (np.pi if flip else 0.0)
+        return np.array([point[0], point[1], point[2], wrap_angle(yaw)], dtype=np.float32)

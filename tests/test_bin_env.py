@@ -1,0 +1,222 @@
+"""The bin-picking env (DONBinPick-v0): registered ids, seeded piles, segmentation and true poses for oracles,
+the physics of a pick from a pile, the episode's end, the env checkers, and bad input.
+
+Images are small (64x48); each grasp step runs the scripted robot program (about a second here). Test seeds
+(100 and up) are apart from the seeds the pile and oracle were developed on (0-9).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import trimesh
+
+import don_gym  # noqa: F401  (registers the env ids)
+from don_gym.errors import DonGymError
+from don_gym.geometry import project_points, transform_points
+from don_gym.objects import load_object
+from don_gym.sim.bin_env import BinPickEnv
+from don_gym.sim.bin_task import (
+    BIN_INNER_SIZE_M,
+    BIN_WALL_HEIGHT_M,
+    bin_inner_bounds,
+    check_bin_parts,
+    lying_footprint_m,
+)
+from don_gym.sim.task import TABLE_TOP_Z_M
+
+SMALL = (64, 48)
+#: A grasp beside the bin, on the bare table: the fingers close on nothing.
+EMPTY_GRASP = np.array([0.385, 0.0, 0.02, 0.0], dtype=np.float32)
+
+
+@pytest.fixture(scope="module")
+def env():
+    env = gym.make("DONBinPick-v0", image_size=SMALL, sensor="ideal").unwrapped
+    yield env
+    env.close()
+
+
+def _poses(info) -> list[tuple[int, str, np.ndarray]]:
+    return [(p["instance"], p["part"], p["T_world_object"]) for p in info["instances"]]
+
+
+def test_registered_ids_make_the_default_pile_with_their_target(env):
+    assert isinstance(env, BinPickEnv)
+    assert env.target == "toolcap" and env.part_names == ["toolcap"] * 3 + ["shaft"] * 2
+    _, info = env.reset(seed=100)
+    assert info["targets_left"] == 3 and info["target"] == "toolcap" and info["outcome"] == "fail"
+    x0, x1, y0, y1 = bin_inner_bounds()
+    for pose in info["instances"]:  # all five settled inside the walls, a pile about as high as the rim
+        com = pose["T_world_object"][:3, 3]
+        assert pose["in_bin"] and x0 < com[0] < x1 and y0 < com[1] < y1
+        assert TABLE_TOP_Z_M < com[2] < TABLE_TOP_Z_M + BIN_WALL_HEIGHT_M + 0.02
+    shaft = gym.make("DONShaftBinPick-v0", image_size=None)
+    try:
+        _, info = shaft.reset(seed=100)
+        assert shaft.unwrapped.target == "shaft" and info["targets_left"] == 2
+        assert info["instance_segmentation"] is None and all(p["visible_pixels"] is None for p in info["instances"])
+    finally:
+        shaft.close()
+
+
+def test_same_seed_gives_the_same_pile_bit_for_bit(env):
+    obs_a, info_a = env.reset(seed=101)
+    _, info_b = env.reset(seed=102)
+    obs_c, info_c = env.reset(seed=101)
+    assert any(not np.array_equal(a[2], b[2]) for a, b in zip(_poses(info_a), _poses(info_b), strict=True))
+    for (id_a, part_a, T_a), (id_c, part_c, T_c) in zip(_poses(info_a), _poses(info_c), strict=True):
+        assert (id_a, part_a) == (id_c, part_c) and np.array_equal(T_a, T_c)
+    for key in obs_a:
+        assert np.array_equal(obs_a[key], obs_c[key]), key
+    assert np.array_equal(info_a["instance_segmentation"], info_c["instance_segmentation"])
+
+
+def test_instance_segmentation_shows_each_instance_where_its_pose_projects(env):
+    obs, info = env.reset(seed=103)
+    segmentation = env.instance_segmentation()
+    assert segmentation.shape == SMALL[::-1] and segmentation.dtype == np.int32
+    assert set(np.unique(segmentation)) <= {-1, 0, 1, 2, 3, 4}
+    T_camera_world = np.linalg.inv(info["T_world_camera"])
+    visible = env.instance_poses(visible_only=True)
+    assert len(visible) >= 4  # a pile of five: at most one hidden
+    for pose in visible:
+        mask = segmentation == pose["instance"]
+        assert pose["visible_pixels"] == int(mask.sum()) > 0
+        # The instance's centre of mass projects onto (or right beside) its own pixels.
+        com_world = (
+            pose["T_world_object"][:3, :3] @ env.models[pose["part"]].center_of_mass + pose["T_world_object"][:3, 3]
+        )
+        uv, _ = project_points(env.intrinsics, transform_points(T_camera_world, com_world[None]))
+        u, v = uv[0]
+        rows, cols = np.nonzero(mask)
+        assert np.min(np.hypot(cols - u, rows - v)) <= 2.0, pose["instance"]
+
+
+def test_oracle_picks_the_top_target_from_the_pile_and_it_is_cleared(env):
+    env.reset(seed=100)
+    top = env.task.top_instance("toolcap")
+    assert env.task.grasp_is_clear(top)
+    _, reward, terminated, truncated, info = env.step(env.oracle_action())
+    assert info["outcome"] in ("grasp_only", "grasp_and_place"), info["outcome"]
+    assert info["instance"] == top.instance_id and info["part"] == "toolcap" and info["lifted"]
+    assert top.instance_id in info["cleared"] and info["targets_left"] == 2
+    assert top.instance_id not in [p["instance"] for p in info["instances"]]
+    assert reward == float(info["outcome"] == "grasp_and_place") and info["is_success"] == (reward == 1.0)
+    assert not terminated and not truncated and info["end_reason"] is None and info["attempts"] == 1
+
+
+def test_picking_a_shaft_is_a_wrong_part(env):
+    env.reset(seed=101)
+    shaft = env.task.top_instance("shaft")
+    _, reward, _, _, info = env.step(env.oracle_action(instance=shaft.instance_id))
+    assert info["outcome"] == "wrong_part" and info["part"] == "shaft" and info["instance"] == shaft.instance_id
+    assert reward == 0.0 and info["targets_left"] == 3 and shaft.instance_id in info["cleared"]
+    assert info["failed_in_a_row"] == 0
+
+
+def test_failed_attempts_in_a_row_end_the_episode_and_the_step_limit_truncates():
+    env = gym.make("DONBinPick-v0", image_size=None, sensor="ideal", max_failed_attempts=2, max_steps=2).unwrapped
+    try:
+        env.reset(seed=104)
+        _, _, terminated, _, info = env.step(EMPTY_GRASP)
+        assert info["outcome"] == "fail" and info["instance"] is None and info["cleared"] == []
+        assert info["failed_in_a_row"] == 1 and not terminated
+        _, _, terminated, truncated, info = env.step(EMPTY_GRASP)
+        assert terminated and not truncated and info["end_reason"] == "failed_attempts"
+        with pytest.raises(DonGymError, match="reset"):
+            env.step(EMPTY_GRASP)
+        env.max_failed_attempts = 5
+        env.reset(seed=104)
+        for _ in range(2):
+            _, _, terminated, truncated, info = env.step(EMPTY_GRASP)
+        assert truncated and not terminated and info["end_reason"] == "step_limit"
+    finally:
+        env.close()
+
+
+def test_picking_the_last_target_clears_the_bin():
+    env = gym.make("DONBinPick-v0", parts={"toolcap": 1}, image_size=None, sensor="ideal").unwrapped
+    try:
+        env.reset(seed=105)
+        _, _, terminated, _, info = env.step(env.oracle_action())
+        assert info["outcome"] in ("grasp_only", "grasp_and_place") and info["targets_left"] == 0
+        assert terminated and info["end_reason"] == "cleared"
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("control", ["grasp", "ee"])
+def test_gymnasium_and_sb3_check_env(control):
+    from gymnasium.utils.env_checker import check_env
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    env = gym.make("DONBinPick-v0", control=control, image_size=(32, 24))
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # advice about action ranges and 2D observations only
+            check_env(env.unwrapped)
+            sb3_check_env(env.unwrapped)
+    finally:
+        env.close()
+
+
+def test_a_user_mesh_joins_the_pile_under_its_file_name(tmp_path, monkeypatch):
+    monkeypatch.setenv("DON_GYM_CACHE", str(tmp_path / "cache"))
+    path = tmp_path / "bar.stl"
+    trimesh.creation.box(extents=(0.05, 0.02, 0.02)).export(path)
+    env = gym.make("DONBinPick-v0", parts={str(path): 2, "toolcap": 1}, target="bar", image_size=None).unwrapped
+    try:
+        assert env.target == "bar" and env.part_names == ["bar", "bar", "toolcap"]
+        _, info = env.reset(seed=106)
+        assert info["targets_left"] == 2 and all(p["in_bin"] for p in info["instances"])
+    finally:
+        env.close()
+
+
+def test_bin_capacity_follows_the_floor_and_the_parts_footprints():
+    toolcap = {"toolcap": load_object("toolcap")}
+    length, diameter = lying_footprint_m(toolcap["toolcap"])
+    assert (length, diameter) == pytest.approx((0.040, 0.034), abs=2e-4)
+    # Half the 0.17 x 0.24 m floor (204 cm^2) holds 14 toolcaps lying down (14 x 13.6 cm^2 = 190 cm^2).
+    assert int(0.5 * BIN_INNER_SIZE_M[0] * BIN_INNER_SIZE_M[1] // (length * diameter)) == 14
+    check_bin_parts({"toolcap": 14}, toolcap)
+    with pytest.raises(DonGymError, match="more parts than fit"):
+        check_bin_parts({"toolcap": 15}, toolcap)
+    with pytest.raises(DonGymError, match=r"'shaft' is 0.180 m long; the bin .* takes parts up to 0.162 m long"):
+        check_bin_parts({"shaft": 1}, {"shaft": load_object("shaft", scale=1.5)})
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "expected"),
+    [
+        ({"parts": {"teapot": 2}}, r"parts: 'teapot' is neither a built-in part"),
+        ({"parts": {"toolcap": -1, "shaft": 2}}, r"count -1 of 'toolcap': expected an integer >= 0"),
+        ({"parts": {"toolcap": 2.5}}, r"count 2.5 of 'toolcap'"),
+        (
+            {"parts": {"toolcap": 2}, "target": "shaft"},
+            r"target='shaft' is not among the parts; expected one of \['toolcap'\]",
+        ),
+        ({"parts": {"toolcap": 0, "shaft": 2}}, r"target='toolcap' is not among the parts"),
+        ({"parts": {"toolcap": 40}}, r"parts=\{'toolcap': 40\}: more parts than fit in the bin"),
+        ({"parts": ["toolcap"]}, r"expected a dict of part"),
+        ({"max_failed_attempts": 0}, r"max_failed_attempts=0: expected a positive integer"),
+        ({"reward_type": "dense"}, r"reward_type='dense' is unknown"),
+        ({"part_scales": {"shaft": 0.001}, "parts": {"toolcap": 1}}, r"part_scales: 'shaft' is not among the parts"),
+    ],
+)
+def test_bad_input_is_one_line_naming_it(kwargs, expected):
+    with pytest.raises(DonGymError, match=expected) as error:
+        gym.make("DONBinPick-v0", image_size=None, **kwargs)
+    assert "\n" not in str(error.value)
+
+
+def test_bad_reset_options_and_oracle_instance(env):
+    with pytest.raises(DonGymError, match="no reset options"):
+        env.reset(options={"pose_id": 1})
+    env.reset(seed=100)
+    with pytest.raises(DonGymError, match=r"instance=99: expected an instance id 0..4"):
+        env.oracle_action(instance=99)
