@@ -526,11 +526,10 @@ class DONDataset:
         from don_gym.objects import builtin_names, load_object
 
         spec, source = str(self.info["object"]), str(self.info.get("object_source", ""))
-        if spec not in builtin_names() and not Path(spec).expanduser().exists():
-            if (self.root / spec).is_file():  # a model stored with the dataset (BOP imports)
-                spec = str(self.root / spec)
-            elif Path(source).is_file():
-                spec = source
+        if spec not in builtin_names() and self.info.get("scene_kind") == "bop" and (self.root / spec).is_file():
+            spec = str(self.root / spec)  # the model stored with the dataset
+        elif spec not in builtin_names() and not Path(spec).expanduser().exists() and Path(source).is_file():
+            spec = source
         try:
             model = load_object(spec, scale=self.info.get("object_scale"))
             differences = part_differences(self.info, model.shape_signature, model.mesh_hash, self.root / DATASET_FILE)
