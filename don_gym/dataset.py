@@ -39,9 +39,9 @@ FIELD_FILE = "descriptor_field.npz"
 SCENE_FILE = "scene.json"
 
 #: Image kinds stored per frame, with their on-disk encoding.
-FRAME_KINDS = (
-    "rgb", "depth", "depth_ideal", "depth_fused", "mask", "mask_fused", "target_mask", "descriptor", "instance"
-)  # fmt: skip
+FRAME_KINDS = ("rgb", "depth", "depth_ideal", "depth_fused", "mask", "mask_fused", "target_mask", "descriptor")
+#: Image kinds a scene may store (version 2): ``instance``, the visible instance id per pixel.
+OPTIONAL_FRAME_KINDS = ("instance",)
 #: ``scene_kind`` of ``dataset.json`` (version 2): today's single-part scenes, piles of parts, BOP imports.
 SCENE_KINDS = ("single", "bin", "bop")
 DEPTH_KINDS = ("depth", "depth_ideal", "depth_fused")
@@ -128,8 +128,8 @@ def write_frame(scene_path: Path, frame_index: int, images: Mapping[str, np.ndar
     float (H, W, D) in [0, 1]; ``instance`` int (H, W), the visible instance id (0 = none), as 16-bit PNG.
     """
     for kind, image in images.items():
-        if kind not in FRAME_KINDS:
-            raise ValueError(f"unknown frame kind {kind!r}; expected one of {FRAME_KINDS}")
+        if kind not in FRAME_KINDS + OPTIONAL_FRAME_KINDS:
+            raise ValueError(f"unknown frame kind {kind!r}; expected one of {FRAME_KINDS + OPTIONAL_FRAME_KINDS}")
         path = frame_path(scene_path, kind, frame_index, descriptor_dim)
         if kind == "rgb":
             write_png(path, cv2.cvtColor(np.asarray(image, dtype=np.uint8), cv2.COLOR_RGB2BGR))
@@ -174,7 +174,7 @@ def read_frame_image(scene_path: Path, kind: str, frame_index: int, descriptor_d
             return np.load(path).astype(np.float32)
         except (OSError, ValueError) as exc:
             raise DatasetError(f"{path}: missing or unreadable descriptor target ({exc})") from exc
-    raise ValueError(f"unknown frame kind {kind!r}; expected one of {FRAME_KINDS}")
+    raise ValueError(f"unknown frame kind {kind!r}; expected one of {FRAME_KINDS + OPTIONAL_FRAME_KINDS}")
 
 
 # --- metadata ---------------------------------------------------------------------------
