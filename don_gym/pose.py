@@ -96,6 +96,11 @@ class PoseTargets:
         diameter_m: the part's diameter.
         mesh: the part's mesh (object frame, metres).
         mask_threshold: ``mask_channel`` value above which a pixel is on the part.
+        background_threshold: distance from ``background`` beyond which a pixel is on the part (None: half
+            the distance from the background to the nearest target).
+        off_part_descriptors: (M, C) descriptors of pixels off the part in reference views, for a source
+            with neither background nor mask channel: a pixel nearer to one of them than to every target is
+            off the part. None: not known.
     """
 
     descriptors: np.ndarray
@@ -112,6 +117,8 @@ class PoseTargets:
     diameter_m: float
     mesh: trimesh.Trimesh
     mask_threshold: float = 0.1
+    background_threshold: float | None = None
+    off_part_descriptors: np.ndarray | None = None
 
     @property
     def symmetric(self) -> bool:
@@ -310,22 +317,32 @@ def reference_vertex_descriptors(
 def pose_targets_for(
     source: DescriptorSource,
     references: Sequence[tuple[np.ndarray, CameraIntrinsics, np.ndarray]] = (),
+    from_field: bool | None = None,
 ) -> PoseTargets:
     """The targets of a descriptor source (:mod:`don_gym.descriptor_sources`) for its part.
 
-    Sources that reproduce the optimal field (the oracle, ``supervised`` and ``supervised-edge`` networks
-    carrying their field) match the field's vertex descriptors, symmetric as the field is, against its
-    background. Every other source needs ``references``: its own descriptor images of views with known
-    poses (``(descriptor_image, intrinsics, T_camera_object)``), from which the seen vertices get their
-    descriptors (:func:`reference_vertex_descriptors`); a ``supervised-mask`` network's last channel is its
-    mask (not matched; it tells the part), and a part with a symmetry axis is matched by rings (learned
-    descriptors cannot tell the points of a ring apart either). With references, the largest descriptor
-    distance of a kept match is calibrated on them: the 90th percentile of the part's pixels' distances.
+    From the field (``from_field``; None: for the oracle, and for networks that reproduce the optimal field
+    when no reference view is given): the field's vertex descriptors, symmetric as the field is, told from
+    the field's background. From ``references`` (every other case): the source's own descriptor images of
+    views with known poses (``(descriptor_image, intrinsics, T_camera_object)``) give the seen vertices
+    their descriptors (:func:`reference_vertex_descriptors`). A trained network reproduces the field only up
+    to an offset that matching an absolute field suffers from (the shipped toolcap supervised-edge network's
+    part pixels lie 0.3-0.45 from the nearest field descriptor, measured on development scenes) and its own
+    descriptors of a seen view do not. A ``supervised-mask`` network's last channel is its mask (not
+    matched; it tells the part), and a part with a symmetry axis is matched by rings (learned descriptors
+    cannot tell the points of a ring apart either). With references the targets are calibrated on them
+    (:func:`calibrate_targets`).
     """
     model = source.object_model
     if model is None:
         raise DonGymError("pose estimation needs the source's object_model")
-    if source.reference_from_field and source.method in (*FIELD_METHODS, "oracle"):
+    if from_field is None:
+        from_field = source.method == "oracle" or (
+            not references and source.reference_from_field and source.method in FIELD_METHODS
+        )
+    if from_field and not (source.reference_from_field and source.field is not None):
+        raise DonGymError(f"a {source.method!r} model has no descriptor field to match; give reference views")
+    if from_field:
         field_ = source.field
         targets = pose_targets(
             model,
@@ -346,31 +363,64 @@ def pose_targets_for(
         channels = [c for c in range(dim) if c != mask_channel]
         targets = pose_targets(model, descriptors, valid, symmetric=True, channels=channels, mask_channel=mask_channel)
     if references:
-        targets = calibrate_max_distance(targets, references)
+        targets = calibrate_targets(targets, references)
     return targets
 
 
-def calibrate_max_distance(
+def _separating_threshold(inside: np.ndarray, outside: np.ndarray) -> float:
+    """The value that best tells ``inside`` (higher) from ``outside`` (lower): fewest errors, each side
+    weighted by its share."""
+    candidates = np.quantile(np.concatenate([inside, outside]), np.linspace(0.005, 0.995, 199))
+    errors = [(inside < c).mean() + (outside >= c).mean() for c in candidates]
+    return float(candidates[int(np.argmin(errors))])
+
+
+def calibrate_targets(
     targets: PoseTargets,
     references: Sequence[tuple[np.ndarray, CameraIntrinsics, np.ndarray]],
     quantile: float = 0.9,
     floor: float = 0.01,
 ) -> PoseTargets:
-    """``targets`` with ``max_distance`` set to the ``quantile`` of the descriptor distances from the part's
-    pixels in the reference views (their rendered masks) to the nearest target (at least ``floor``)."""
+    """``targets`` tuned to a source on reference views of known pose: ``max_distance``, the ``quantile`` of
+    the descriptor distances from the part's pixels (rendered mask) to the nearest target (at least
+    ``floor``); ``background_threshold`` and ``mask_threshold``, the distance to the background and the mask
+    channel's value that best tell the part's pixels (2 px inside its outline) from the rest."""
     tree = cKDTree(targets.descriptors)
     renderer = DescriptorRenderer(
         targets.mesh, np.zeros((len(targets.mesh.vertices), 1), np.float32), np.zeros(1, np.float32)
     )
-    distances = []
+    distances, inside, outside, mask_inside, mask_outside, off_part = [], [], [], [], [], []
+    channels = list(targets.channels)
     for image, intrinsics, T_camera_object in references:
+        image = np.asarray(image, dtype=np.float32)
         mask = renderer.render(intrinsics, T_camera_object).object_mask
-        pixels = np.asarray(image, dtype=np.float32)[mask][:, list(targets.channels)]
-        if len(pixels):
-            distances.append(tree.query(pixels, k=1)[0])
-    if not distances:
-        return targets
-    return replace(targets, max_distance=max(float(np.quantile(np.concatenate(distances), quantile)), floor))
+        if not mask.any():
+            continue
+        distances.append(tree.query(image[mask][:, channels], k=1)[0])
+        # Off the part, well clear of its outline (whose pixels mix the part with the rest).
+        clear = ~cv2.dilate(mask.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+        off_part.append(image[clear][:, channels])
+        interior = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+        if interior.any() and targets.background is not None:
+            to_background = np.linalg.norm(image[..., channels] - targets.background[channels], axis=2)
+            inside.append(to_background[interior])
+            outside.append(to_background[~mask])
+        if interior.any() and targets.mask_channel is not None:
+            mask_inside.append(image[..., targets.mask_channel][interior])
+            mask_outside.append(image[..., targets.mask_channel][~mask])
+    changes: dict[str, float] = {}
+    if distances:
+        changes["max_distance"] = max(float(np.quantile(np.concatenate(distances), quantile)), floor)
+    if inside:
+        changes["background_threshold"] = _separating_threshold(np.concatenate(inside), np.concatenate(outside))
+    if mask_inside:
+        changes["mask_threshold"] = _separating_threshold(np.concatenate(mask_inside), np.concatenate(mask_outside))
+    rest = np.concatenate(off_part) if off_part else np.zeros((0, len(channels)), np.float32)
+    if len(rest) and targets.background is None and targets.mask_channel is None:
+        # A sample is enough to describe what the rest of a view looks like in descriptor space.
+        keep = np.random.default_rng(0).choice(len(rest), min(len(rest), 20000), replace=False)
+        changes["off_part_descriptors"] = rest[keep]
+    return replace(targets, **changes)
 
 
 # --- matching ------------------------------------------------------------------------------------
@@ -380,8 +430,9 @@ def part_pixels(
     descriptor_image: np.ndarray, targets: PoseTargets, object_mask: np.ndarray | None = None
 ) -> np.ndarray:
     """(H, W) bool pixels taken to show the part: ``object_mask`` when given; else the mask channel above
-    its threshold; else pixels whose descriptor lies further from the background than half the distance
-    from the background to the nearest target descriptor; else (no background known) every pixel."""
+    its threshold; else pixels whose descriptor lies further from the background than
+    ``targets.background_threshold``; else pixels nearer to a target than to every off-part descriptor of the
+    reference views; else (no background known) every pixel."""
     image = np.asarray(descriptor_image)
     if object_mask is not None:
         mask = np.asarray(object_mask, dtype=bool)
@@ -394,8 +445,15 @@ def part_pixels(
         return image[..., targets.mask_channel] > targets.mask_threshold
     if targets.background is not None:
         background = targets.background[list(targets.channels)]
-        margin = float(np.min(np.linalg.norm(targets.descriptors - background, axis=1)))
-        return np.linalg.norm(image[..., list(targets.channels)] - background, axis=2) > 0.5 * margin
+        threshold = targets.background_threshold
+        if threshold is None:
+            threshold = 0.5 * float(np.min(np.linalg.norm(targets.descriptors - background, axis=1)))
+        return np.linalg.norm(image[..., list(targets.channels)] - background, axis=2) > threshold
+    if targets.off_part_descriptors is not None:
+        pixels = image[..., list(targets.channels)].reshape(-1, len(targets.channels))
+        to_part = cKDTree(targets.descriptors).query(pixels, k=1)[0]
+        to_rest = cKDTree(targets.off_part_descriptors).query(pixels, k=1)[0]
+        return (to_part < to_rest).reshape(image.shape[:2])
     return np.ones(image.shape[:2], dtype=bool)
 
 
@@ -760,7 +818,7 @@ def estimate_pose(
         return result(T, int(inliers.sum()), "rings" if targets.symmetric else "kabsch")
     # ICP on all the part's depth points (not only the matched ones): the geometry refines what the
     # descriptors located, and points off the part stay beyond max_distance of the placed model.
-    dv, du = np.nonzero(on_part if object_mask is None and targets.background is None else mask)
+    dv, du = np.nonzero(on_part)
     if len(du) > config.max_pixels:
         chosen = rng.choice(len(du), config.max_pixels, replace=False)
         du, dv = du[chosen], dv[chosen]

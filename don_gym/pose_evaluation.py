@@ -8,10 +8,10 @@ part's rotational symmetry). As BOP does, only instances with at least 10 % of t
 targets, and a frame without an estimate counts as wrong at every threshold. AR here is the mean of AR_MSSD
 and AR_MSPD: BOP's third error, VSD, is not computed.
 
-Methods are loaded as everywhere else (:func:`don_gym.descriptor_sources.load_descriptor_source`). Targets
-that need reference views (``self-supervised``, ``supervised-mask``), and every method's descriptor-distance
-limit, come from one reference frame: the frame of the first scene showing most of the part. It is left
-out of the scoring for every method.
+Methods are loaded as everywhere else (:func:`don_gym.descriptor_sources.load_descriptor_source`). The
+networks' targets (:func:`don_gym.pose.pose_targets_for`) and every method's calibration come from
+reference views with known poses: the :data:`REFERENCE_VIEWS` frames of the first scene showing most of the
+part. They are left out of the scoring for every method.
 """
 
 from __future__ import annotations
@@ -130,11 +130,17 @@ class PoseResult:
         }
 
 
-def _reference_frame(data: DONDataset) -> tuple[int, int]:
-    """(scene, frame) of the first scene showing most of the part."""
+#: Reference views: this many frames of the first scene, those showing most of the part.
+REFERENCE_VIEWS = 2
+
+
+def _reference_frames(data: DONDataset, count: int = REFERENCE_VIEWS) -> list[int]:
+    """Frames of the first scene showing most of the part, at most ``count`` and at least one fewer than
+    the scene has (one is left to score)."""
     record = data.scenes[0]
     sizes = [int(np.count_nonzero(data.image(0, f, "mask"))) for f in range(record.num_frames)]
-    return 0, int(np.argmax(sizes))
+    keep = max(1, min(count, record.num_frames - 1))
+    return sorted(int(f) for f in np.argsort(sizes)[::-1][:keep])
 
 
 def _primary_pose(record, frame: int) -> np.ndarray:
@@ -177,13 +183,19 @@ def evaluate_pose(
     for source in sources.values():
         if isinstance(source, NetworkDescriptors):
             source.network.to(run_on)
-    ref_scene, ref_frame = _reference_frame(datasets[0])
-    ref_record = datasets[0].scenes[ref_scene]
-    ref_T = _primary_pose(ref_record, ref_frame)
+    ref_frames = _reference_frames(datasets[0])
+    ref_record = datasets[0].scenes[0]
     targets = {}
     for name, source in sources.items():
-        image = source.descriptor_image(*frame_observation(datasets[0], ref_scene, ref_frame))
-        targets[name] = pose_targets_for(source, [(image, ref_record.intrinsics, ref_T)])
+        views = [
+            (
+                source.descriptor_image(*frame_observation(datasets[0], 0, f)),
+                ref_record.intrinsics,
+                _primary_pose(ref_record, f),
+            )
+            for f in ref_frames
+        ]
+        targets[name] = pose_targets_for(source, views)
     points = np.asarray(model.mesh.vertices, dtype=np.float64)
     symmetries = object_symmetries(model)
     silhouette = DescriptorRenderer(model.mesh, np.zeros((len(points), 1), np.float32), np.zeros(1, np.float32))
@@ -192,7 +204,7 @@ def evaluate_pose(
         for d, data in enumerate(datasets)
         for s in range(len(data.scenes))[:max_scenes]
         for f in range(data.scenes[s].num_frames)
-        if (d, s, f) != (0, ref_scene, ref_frame)
+        if not (d == 0 and s == 0 and f in ref_frames)
     ]
     rows: dict[tuple[str, str], list[dict[str, Any]]] = {(n, d): [] for n in sources for d in depths}
     with tqdm(total=len(plan) * len(sources), unit="frame", desc="pose", disable=not progress) as bar:
@@ -265,7 +277,7 @@ def evaluate_pose(
             symmetric=model.symmetry_axis is not None,
             estimates=estimates,
             sources={name: _source_info(source) for name, source in sources.items()},
-            reference={"dataset": str(datasets[0].root), "scene": ref_scene, "frame": ref_frame},
+            reference={"dataset": str(datasets[0].root), "scene": 0, "frames": ref_frames},
             config=asdict(config) | {"max_scenes": max_scenes},
         )
     return results

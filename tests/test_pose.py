@@ -246,14 +246,14 @@ def test_evaluate_pose_scores_the_oracle_high_and_noise_low(pose_dataset, toolca
     ideal = results["ideal"].summary()
     assert ideal["symmetric"] and ideal["diameter_mm"] == pytest.approx(49.4, abs=0.1)
     for name in ("oracle", "learned"):
-        assert ideal["methods"][name]["count"] == 5  # 6 frames, the reference frame left out
+        assert ideal["methods"][name]["count"] == 4  # 6 frames, the two reference views left out
         assert ideal["methods"][name]["ar"] >= 0.9, name
         assert ideal["methods"][name]["adds_share"] == 1.0
     assert ideal["methods"]["noise"]["ar"] < 0.3
     assert results["none"].summary()["methods"]["oracle"]["ar_mspd"] >= 0.9  # RGB-only PnP, in the image
     estimates = results["ideal"].estimates["oracle"]
     assert estimates.found.all() and np.all(estimates.time_s > 0)
-    assert len(estimates.bop_rows()) == 5
+    assert len(estimates.bop_rows()) == 4
 
 
 def test_cli_pose_writes_bop_results_bop_reads(pose_dataset, tmp_path, capsys):
@@ -269,6 +269,6 @@ def test_cli_pose_writes_bop_results_bop_reads(pose_dataset, tmp_path, capsys):
     assert summary["methods"]["oracle"]["mssd_thresholds"][0] == pytest.approx(0.05)
     assert (out / "pose_recall.png").stat().st_size > 0
     rows = read_pose_results(out / "pose_oracle.csv")
-    assert len(rows) == 5 and {r["obj_id"] for r in rows} == {1}
+    assert len(rows) == 4 and {r["obj_id"] for r in rows} == {1}
     # t in millimetres: the part lies some 0.3-0.6 m from the camera.
     assert all(200.0 < r["t"][2] < 800.0 for r in rows)
