@@ -1,6 +1,7 @@
 """PyBullet simulation. The env (:mod:`~don_gym.sim.env`) joins robot (``robot``), task (``task``,
 with ``part`` and the scripted grasp of ``script``), wrist camera (``camera``) and depth sensor
-(``sensor``) on its own PyBullet client (``bullet``); ``recorder`` records dataset scenes.
+(``sensor``) on its own PyBullet client (``bullet``); ``recorder`` records dataset scenes. The bin-picking
+env (``bin_env``) swaps the task for a bin of several part instances (``bin_task``).
 Nothing holds global PyBullet state.
 """
 
