@@ -29,6 +29,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--object", default="toolcap", help="built-in name (toolcap, shaft) or a mesh file")
     parser.add_argument(
+        "--scene",
+        default="single",
+        choices=["single", "bin"],
+        help="single: one part on the table (--object); bin: a pile of several parts' instances in a bin (--parts)",
+    )
+    parser.add_argument(
+        "--parts",
+        default="toolcap:3,shaft:2",
+        help="with --scene bin: PART:COUNT[,PART:COUNT...] instances per pile (built-in names or mesh files)",
+    )
+    parser.add_argument(
         "--object-scale", type=float, default=None, help="mesh file units to metres (e.g. 0.001 for mm)"
     )
     parser.add_argument("--scenes", type=int, default=4, help="number of scenes (object poses)")
@@ -89,7 +100,14 @@ def run(args: argparse.Namespace) -> int:
     )
     shard = parse_shard(args.shard)
     try:
-        report = build_dataset(config, args.out, workers=args.workers, shard=shard, overwrite=args.overwrite)
+        if args.scene == "bin":
+            from don_gym.bin_dataset import build_bin_dataset, parse_parts
+
+            report = build_bin_dataset(
+                config, parse_parts(args.parts), args.out, workers=args.workers, shard=shard, overwrite=args.overwrite
+            )
+        else:
+            report = build_dataset(config, args.out, workers=args.workers, shard=shard, overwrite=args.overwrite)
     except OSError as exc:  # a full disk, a lost mount: what is finished stays valid, so say how to go on
         raise DatasetError(
             f"{args.out}: {exc}; every finished scene is kept: fix this and run the same command again to resume"

@@ -5,6 +5,7 @@ poses, with RGB, sensor and ideal depth, object mask and camera poses per frame.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -124,6 +125,10 @@ class SceneRecorder:
     def renderer(self) -> str:
         return self.sim.renderer
 
+    def _obstacle_ids(self) -> tuple[int, ...]:
+        """Bodies the arm must keep clear of at a camera pose."""
+        return (self.task.table_id, self.task.cradle_id, self.task.part.body_id, *self.distractors.body_ids)
+
     def _reach(self, T_world_camera_wanted: np.ndarray) -> np.ndarray | None:
         """Put the arm so the camera is at the wanted pose; returns the true camera pose or None."""
         client = self.sim.client
@@ -162,7 +167,7 @@ class SceneRecorder:
         if position_error > REACH_POSITION_TOLERANCE_M or rotation_error > REACH_ROTATION_TOLERANCE_RAD:
             return None
         client.performCollisionDetection()
-        for other in (self.task.table_id, self.task.cradle_id, self.task.part.body_id, *self.distractors.body_ids):
+        for other in self._obstacle_ids():
             # The base and first link stand on the table by design.
             near = client.getClosestPoints(self.robot.body_id, other, distance=0.005)
             if any(point[3] > 1 for point in near):
@@ -209,15 +214,46 @@ class SceneRecorder:
             background["distractors"] = self.distractors.scatter(variety_rng, centre_m[:2], part_radius_m)
         scene = RecordedScene(self.intrinsics, T_world_object, TABLE_TOP_Z_M, background=background)
         T_camera_reported = sample_calibration_error(self.sensor, rng)
-        halton = qmc.Halton(d=6, seed=rng)
-        object_centre = self.task.part.center_of_mass_world
         part_id = self.task.part.body_id
-        tries = 0
-        while len(scene.frames) < num_frames:
+        views = self._views(
+            rng, self.task.part.center_of_mass_world, num_frames, max_tries_per_frame, lighting,
+            {part_id: self.model.material.specular}, "the object",
+        )  # fmt: skip
+        for T_world_camera, rgb, depth, depth_ideal, segmentation in views:
+            scene.frames.append(
+                RecordedFrame(
+                    rgb=rgb,
+                    depth_m=depth,
+                    depth_ideal_m=depth_ideal,
+                    object_mask=body_mask(segmentation, part_id),
+                    T_world_camera=T_world_camera,
+                    T_world_camera_reported=T_world_camera @ T_camera_reported,
+                )
+            )
+        self.robot.reset(ARM_HOME_RAD)
+        return scene
+
+    def _views(
+        self,
+        rng: np.random.Generator,
+        look_at_world: np.ndarray,
+        num_frames: int,
+        max_tries_per_frame: int,
+        lighting: Any,
+        specular_by_body: dict[int, float],
+        what: str,
+    ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """``num_frames`` reachable wrist-camera views around ``look_at_world`` (3,), drawn from ``rng``:
+        ``(T_world_camera, rgb, sensor depth, ideal depth, segmentation)`` each (the trajectory of the class
+        docstring); ``what`` names the thing looked at in the refusal when too few poses are reachable."""
+        halton = qmc.Halton(d=6, seed=rng)
+        object_centre = np.asarray(look_at_world, dtype=np.float64)
+        tries = found = 0
+        while found < num_frames:
             tries += 1
             if tries > max_tries_per_frame * num_frames:
                 raise DonGymError(
-                    f"could not reach {num_frames} camera poses around the object at {object_centre.round(3)}; "
+                    f"could not reach {num_frames} camera poses around {what} at {object_centre.round(3)}; "
                     "is it inside the robot's workspace?"
                 )
             s = halton.random(1)[0]
@@ -236,20 +272,10 @@ class SceneRecorder:
             rgb, depth_ideal, segmentation = render_camera(
                 self.sim.client, self.intrinsics, T_world_camera, renderer=self.sim.renderer, lighting=lighting
             )
-            specular = specular_map(segmentation, {part_id: self.model.material.specular})
+            specular = specular_map(segmentation, specular_by_body)
             depth = simulate_depth(depth_ideal, specular, self.intrinsics, self.sensor, rng)
-            scene.frames.append(
-                RecordedFrame(
-                    rgb=rgb,
-                    depth_m=depth,
-                    depth_ideal_m=depth_ideal,
-                    object_mask=body_mask(segmentation, part_id),
-                    T_world_camera=T_world_camera,
-                    T_world_camera_reported=T_world_camera @ T_camera_reported,
-                )
-            )
-        self.robot.reset(ARM_HOME_RAD)
-        return scene
+            found += 1
+            yield T_world_camera, rgb, depth, depth_ideal, segmentation
 
     def close(self) -> None:
         self.sim.close()
