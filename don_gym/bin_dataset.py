@@ -26,6 +26,7 @@ from tqdm.auto import tqdm
 
 from don_gym import __version__
 from don_gym.build import DatasetConfig, _check_renderer_available, _check_run_options, _clear_dir, scene_seed
+from don_gym.correspondences import Correspondences
 from don_gym.dataset import (
     DATASET_FILE,
     FIELD_FILE,
@@ -595,3 +596,49 @@ class BinTargets:
             )
         target = make_instances_target(self.variant, descriptor, ids, self.background, self.edge_width_px, mask_dim=-1)
         return target, mask
+
+
+def filter_correspondences_by_instance(
+    correspondences: Correspondences,
+    instance_ids_a: np.ndarray,
+    instance_ids_b: np.ndarray,
+    part_of_instance: Mapping[int, str],
+) -> Correspondences:
+    """Correspondences of a pile for the self-supervised method, as the original multi-object DON training keeps
+    objects apart: matches only within one instance; non-matches on the same instance or on another part, or
+    off every instance, never on another instance of the same part (whose descriptors the network should give
+    alike, a part's descriptors being the part's and not the instance's).
+
+    Args:
+        correspondences: sampled on the pile's fused depth and masks (pixels (u, v) of full images).
+        instance_ids_a, instance_ids_b: (H, W) int the visible instance per pixel of each image (0 = none).
+        part_of_instance: instance id -> part name.
+    """
+    parts = {0: ""} | {int(k): str(v) for k, v in part_of_instance.items()}
+    lookup = np.full(max(parts) + 1, -1, dtype=np.int64)
+    names = sorted(set(parts.values()))
+    for instance, name in parts.items():
+        lookup[instance] = names.index(name) if instance else -1
+
+    def ids(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        return np.asarray(image)[uv[:, 1], uv[:, 0]].astype(np.int64)
+
+    def keep_nonmatches(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        id_a, id_b = ids(instance_ids_a, a), ids(instance_ids_b, b)
+        same_instance = (id_a == id_b) & (id_a > 0)
+        same_part = (lookup[id_a] == lookup[id_b]) & (id_a > 0) & (id_b > 0)
+        return same_instance | ~same_part
+
+    c = correspondences
+    match_a, match_b = ids(instance_ids_a, c.matches_a), ids(instance_ids_b, c.matches_b)
+    keep_match = (match_a == match_b) & (match_a > 0)
+    keep_object = keep_nonmatches(c.nonmatches_object_a, c.nonmatches_object_b)
+    keep_background = keep_nonmatches(c.nonmatches_background_a, c.nonmatches_background_b)
+    return Correspondences(
+        matches_a=c.matches_a[keep_match],
+        matches_b=c.matches_b[keep_match],
+        nonmatches_object_a=c.nonmatches_object_a[keep_object],
+        nonmatches_object_b=c.nonmatches_object_b[keep_object],
+        nonmatches_background_a=c.nonmatches_background_a[keep_background],
+        nonmatches_background_b=c.nonmatches_background_b[keep_background],
+    )

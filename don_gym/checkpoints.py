@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from don_gym.descriptors import FIELD_MATCH_ATOL, DescriptorField, embed, mesh_content_hash
+from don_gym.descriptors.multi_part import PartSpace
 from don_gym.errors import CheckpointError, DonGymError, MeshError
 from don_gym.io import atomic_path
 from don_gym.methods import METHODS, is_supervised
@@ -70,6 +71,9 @@ class CheckpointMetadata:
         object_signature, descriptor_field, identity_sha256: the :class:`PartIdentity`, written by
             :func:`save_checkpoint` (empty without one): ``ShapeSignature.to_dict()``, the field's
             non-array settings, and a SHA-256 of the identity's tensors.
+        part_space: a network of several parts (trained on a bin dataset): the descriptor space it learned,
+            :meth:`~don_gym.descriptors.multi_part.PartSpace.to_dict`, naming every part with its shape
+            signature; the identity above is then its first part's. Empty for a one-part network.
     """
 
     method: str
@@ -93,9 +97,13 @@ class CheckpointMetadata:
     object_signature: dict[str, Any] = field(default_factory=dict)
     descriptor_field: dict[str, Any] = field(default_factory=dict)
     identity_sha256: str = ""
+    part_space: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        data = dataclasses.asdict(self)
+        if not data["part_space"]:  # a one-part network's metadata reads as before the field existed
+            del data["part_space"]
+        return data
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], source: str = "metadata", strict: bool = False) -> CheckpointMetadata:
@@ -129,7 +137,7 @@ class CheckpointMetadata:
                 elif name in ("training_steps", "descriptor_dim", "format_version"):
                     if isinstance(value, bool) or not isinstance(value, int):
                         raise TypeError(f"{name} must be an integer, got {value!r}")
-                elif name in ("extra", "object_signature", "descriptor_field"):
+                elif name in ("extra", "object_signature", "descriptor_field", "part_space"):
                     if not isinstance(value, dict):
                         raise TypeError(f"{name} must be an object, got {value!r}")
                 elif not isinstance(value, str):
@@ -249,9 +257,43 @@ class PartIdentity:
         return trained
 
 
+def checkpoint_part_space(metadata: CheckpointMetadata) -> PartSpace | None:
+    """The descriptor space of a network of several parts (:attr:`CheckpointMetadata.part_space`), None for a
+    one-part network; CheckpointError when the record is damaged."""
+    if not metadata.part_space:
+        return None
+    try:
+        return PartSpace.from_dict(metadata.part_space, "checkpoint metadata part_space")
+    except DonGymError as exc:
+        raise CheckpointError(str(exc)) from None
+
+
+def part_index_in(space: PartSpace, part: ObjectModel) -> int | None:
+    """Index of ``part`` among a space's parts, by shape signature (by name for a region without one)."""
+    for k, region in enumerate(space.parts):
+        if region.signature is None:
+            if region.name == part.name:
+                return k
+        elif not part.shape_signature.differences(region.signature):
+            return k
+    return None
+
+
 def part_mismatch(metadata: CheckpointMetadata, part: ObjectModel) -> str | None:
     """Why the network of ``metadata`` is not for ``part``, or None when it is: decided by the shape
-    signature; a checkpoint without one (format 1) by name (:func:`~don_gym.objects.part_name`)."""
+    signature; a checkpoint without one (format 1) by name (:func:`~don_gym.objects.part_name`). A network of
+    several parts (:attr:`CheckpointMetadata.part_space`) is for each of its parts."""
+    if metadata.part_space:
+        try:
+            space = checkpoint_part_space(metadata)
+        except CheckpointError as exc:
+            return str(exc)
+        if part_index_in(space, part) is not None:
+            return None
+        return (
+            f"trained on the parts {list(space.names)}, and part {part.name!r} ({part.source}) has the shape of "
+            "none of them; use a network trained on this part"
+        )
     if not metadata.object_signature:
         if part_name(metadata.object_name) != part.name:
             return f"object_name is {metadata.object_name!r}, expected {part.name!r}"

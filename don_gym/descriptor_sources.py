@@ -8,6 +8,7 @@ chosen object surface points, such as the two rings of :func:`axis_end_targets`.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import warnings
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
@@ -20,8 +21,15 @@ import gymnasium as gym
 import numpy as np
 import trimesh
 
-from don_gym.checkpoints import CheckpointMetadata, PartIdentity, read_part_identity
+from don_gym.checkpoints import (
+    CheckpointMetadata,
+    PartIdentity,
+    checkpoint_part_space,
+    part_index_in,
+    read_part_identity,
+)
 from don_gym.descriptors import DescriptorField, embed, interpolate_field
+from don_gym.descriptors.multi_part import PartSpace
 from don_gym.errors import CheckpointError, DonGymError
 from don_gym.geometry import CameraIntrinsics, invert_transform, transform_points
 from don_gym.keypoints import project_visible, sample_descriptors
@@ -232,7 +240,10 @@ class NetworkDescriptors(DescriptorSource):
         warning, for a checkpoint that carries no field."""
         if not self._field_checked:
             metadata = self.metadata
-            if metadata is not None and self.object_model is not None and metadata.method in FIELD_METHODS:
+            space = checkpoint_part_space(metadata) if metadata is not None else None
+            if space is not None and self.object_model is not None and metadata.method in FIELD_METHODS:
+                self._field = self._part_space_field(space)
+            elif metadata is not None and self.object_model is not None and metadata.method in FIELD_METHODS:
                 trained = self.identity.field if self.identity is not None else None
                 if trained is None:
                     warnings.warn(
@@ -247,6 +258,24 @@ class NetworkDescriptors(DescriptorSource):
                     self._field = self.identity.field_on(self.object_model, computed, self.source)
             self._field_checked = True  # not before: a refused field is refused again on the next use
         return self._field
+
+    def _part_space_field(self, space: PartSpace) -> DescriptorField:
+        """A network of several parts: :attr:`object_model`'s optimal field mapped into its region of the
+        network's space (the part's own field checked against the checkpoint's where it carries it)."""
+        index = part_index_in(space, self.object_model)
+        if index is None:  # load_descriptor_source refuses such a part first
+            raise CheckpointError(f"{self.source}: part {self.object_model.name!r} is none of {list(space.names)}")
+        settings = self.metadata.descriptor_field
+        trained = self.identity.field if self.identity is not None else None
+        symmetric = trained.symmetric if trained is not None else bool(settings.get("symmetric", True))
+        own = descriptor_field_for(self.object_model, space.dim, symmetric)
+        if trained is not None and not self.object_model.shape_signature.differences(self.identity.signature):
+            own = self.identity.field_on(self.object_model, own, self.source)
+        return dataclasses.replace(
+            own,
+            vertex_descriptors=space.map_descriptors(index, own.vertex_descriptors),
+            background=np.asarray(space.background, dtype=np.float32),
+        )
 
     @property
     def reference_from_field(self) -> bool:

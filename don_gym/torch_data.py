@@ -17,6 +17,13 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from don_gym.augment import AugmentConfig, augment
+from don_gym.bin_dataset import (
+    BinTargets,
+    filter_correspondences_by_instance,
+    instance_parts,
+    is_multi_part,
+    load_part_space,
+)
 from don_gym.correspondences import Correspondences, camera_poses_differ, sample_correspondences
 from don_gym.dataset import DEPTH_SOURCES, DONDataset, has_fused_depth
 from don_gym.errors import DatasetError, DonGymError
@@ -94,15 +101,24 @@ class SupervisedFrames(Dataset):
             raise DatasetError(f"target variant {variant!r} is unknown; expected one of {TARGET_VARIANTS}")
         self.data = DONDataset(root)
         self.variant = variant
-        field = self.data.descriptor_field()
-        #: (D,) descriptor of the targets off the object (the variant's, :func:`make_target`).
-        self.background = (
-            mask_background(field.vertex_descriptors)
-            if variant == "mask"
-            else np.asarray(field.background, dtype=np.float32)
-        )
         width = self.data.scenes[0].intrinsics.width
         self.edge_width_px = default_edge_width_px(width) if edge_width_px is None else float(edge_width_px)
+        #: A bin dataset's targets (several parts in one space, :class:`~don_gym.bin_dataset.BinTargets`), else None.
+        self.bin_targets = None
+        #: The multi-part descriptor space the network learns (bin datasets), else None.
+        self.part_space = None
+        if is_multi_part(self.data):
+            self.bin_targets = BinTargets(self.data, variant, self.edge_width_px)
+            self.part_space = self.bin_targets.space
+            self.background = self.bin_targets.background
+        else:
+            field = self.data.descriptor_field()
+            #: (D,) descriptor of the targets off the object (the variant's, :func:`make_target`).
+            self.background = (
+                mask_background(field.vertex_descriptors)
+                if variant == "mask"
+                else np.asarray(field.background, dtype=np.float32)
+            )
         self.index = self.data.frames
         self.crop_size = crop_size
         self.background_crop_probability = background_crop_probability
@@ -119,10 +135,13 @@ class SupervisedFrames(Dataset):
         """Item ``i`` with its crop window drawn from ``crop_rng``."""
         scene, frame = self.index[i]
         rgb = self.data.image(scene, frame, "rgb")
-        mask = self.data.image(scene, frame, "target_mask")
-        target = make_target(
-            self.variant, self.data.image(scene, frame, "descriptor"), mask, self.background, self.edge_width_px
-        )
+        if self.bin_targets is not None:
+            target, mask = self.bin_targets.frame(scene, frame)
+        else:
+            mask = self.data.image(scene, frame, "target_mask")
+            target = make_target(
+                self.variant, self.data.image(scene, frame, "descriptor"), mask, self.background, self.edge_width_px
+            )
         if self.crop_size is not None:
             u0, v0 = crop_window(mask, self.crop_size, crop_rng, self.background_crop_probability)
             window = (slice(v0, v0 + self.crop_size[1]), slice(u0, u0 + self.crop_size[0]))
@@ -170,6 +189,8 @@ class CorrespondencePairs(Dataset):
                 "method's default depth source; rebuild it without --no-fusion, or train from the sensor depth "
                 "with --depth-source sensor"
             )
+        #: A bin dataset's descriptor space (its parts' identity, for the checkpoint), else None.
+        self.part_space = load_part_space(self.data) if is_multi_part(self.data) else None
         self.length = int(length)
         self.seed = int(seed)
         self.num_match_attempts = num_match_attempts
@@ -208,6 +229,13 @@ class CorrespondencePairs(Dataset):
             rng,
             num_match_attempts=self.num_match_attempts,
         )
+        if self.part_space is not None:  # a pile: matches within an instance, non-matches across parts
+            correspondences = filter_correspondences_by_instance(
+                correspondences,
+                self.data.image(scene, a, "instance"),
+                self.data.image(scene, b, "instance"),
+                instance_parts(record),
+            )
         rgb_a, rgb_b = self.data.image(scene, a, "rgb"), self.data.image(scene, b, "rgb")
         if self.crop_size is not None:
             width, height = self.crop_size

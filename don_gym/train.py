@@ -327,11 +327,14 @@ def checkpoint_metadata(
     image_size: tuple[int, int],
     step: int,
     background_descriptor: np.ndarray | None = None,
+    part_space: dict[str, Any] | None = None,
 ) -> CheckpointMetadata:
     """What a checkpoint of this run records; ``background_descriptor`` is its targets' background (supervised
-    methods: ``SupervisedFrames.background``)."""
+    methods: ``SupervisedFrames.background``), ``part_space`` the descriptor space of a network of several
+    parts (:meth:`~don_gym.descriptors.multi_part.PartSpace.to_dict`)."""
     supervised = is_supervised(config.method)
     return CheckpointMetadata(
+        part_space=dict(part_space or {}),
         method=config.method,
         object_name=dataset_info.get("object_name") or part_name(dataset_info["object"]),
         object_mesh_hash=dataset_info["mesh_hash"],
@@ -510,6 +513,8 @@ def _train(
     supervised = is_supervised(config.method)
     part_identity = dataset_part_identity(source.data, supervised) if launch.is_main else None
     target_background = source.background if isinstance(source, SupervisedFrames) else None
+    part_space = getattr(source, "part_space", None)
+    part_space_record = part_space.to_dict() if part_space is not None else None
 
     torch.manual_seed(config.seed)
     model = DenseObjectNet(config.arch, int(info["descriptor_dim"])).to(device)
@@ -615,7 +620,7 @@ def _train(
             save_checkpoint(
                 path,
                 model,
-                checkpoint_metadata(config, info, image_size, step, target_background),
+                checkpoint_metadata(config, info, image_size, step, target_background, part_space_record),
                 identity=part_identity,
             )
         save_state(step, seconds)
