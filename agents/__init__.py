@@ -11,11 +11,15 @@ Installed as ``don_gym.agents``.
       obs, info = env.reset(options={"pose_id": 0})
       obs, reward, terminated, truncated, info = env.step(agent.act(obs))
 
+- :class:`PoseGraspAgent`: the same descriptors through a 6D pose estimate (:mod:`don_gym.pose`): the
+  grasp point and +axis yaw of the estimated pose; ``PoseGraspAgent(env, model="oracle")`` likewise.
+
 - :mod:`don_gym.agents.rl` (extra ``rl``): stable-baselines3 baselines, PPO on ``control="grasp"``
   with keypoint observations and SAC on ``control="ee"`` (``rl.train``, ``rl.evaluate``); imported
   on demand so that the core install does not need stable-baselines3.
 """
 
 from don_gym.agents.axis_grasp import AxisGraspAgent
+from don_gym.agents.pose_grasp import PoseGraspAgent
 
-__all__ = ["AxisGraspAgent"]
+__all__ = ["AxisGraspAgent", "PoseGraspAgent"]

@@ -2,7 +2,9 @@
 
 Kupcsik et al. 2021 ("Experiment setup") grasp the toolcap at 8 fixed poses with each trained DON
 through a two-descriptor axis grasp and count the outcomes; :func:`run_grasp_benchmark` does the same
-with an :class:`~don_gym.agents.AxisGraspAgent` per method, for each depth sensor of the sweep.
+with an :class:`~don_gym.agents.AxisGraspAgent` per method, for each depth sensor of the sweep. A method
+named ``pose:MODEL`` grasps with a :class:`~don_gym.agents.PoseGraspAgent` of that model instead (the
+same descriptors through a 6D pose estimate), so both uses are compared on the same episodes.
 """
 
 from __future__ import annotations
@@ -27,6 +29,18 @@ DEFAULT_METHODS: tuple[str, ...] = (
     "{object}/supervised-mask",
     "{object}/self-supervised",
 )
+#: Prefix of a method grasped through a 6D pose estimate (:class:`~don_gym.agents.PoseGraspAgent`).
+POSE_AGENT_PREFIX = "pose:"
+
+
+def agent_model(method: str) -> tuple[str, str]:
+    """``("pose", MODEL)`` for a method ``pose:MODEL``, else ``("axis", method)``: which agent grasps, with
+    which model."""
+    if method.startswith(POSE_AGENT_PREFIX):
+        return "pose", method[len(POSE_AGENT_PREFIX) :]
+    return "axis", method
+
+
 #: Sensor sweep from ideal depth to the D435 (the last one is the headline sensor).
 DEFAULT_SENSORS: tuple[str, ...] = ("ideal", "d435@0.5", "d435")
 #: Wrist-camera (width, height) in pixels when no network decides it (the oracle alone).
@@ -244,12 +258,13 @@ class EpisodeRunner:
     def _agent(self, sensor: str, method: str):
         key = (sensor, method)
         if key not in self._agents:
-            from don_gym.agents import AxisGraspAgent
+            from don_gym.agents import AxisGraspAgent, PoseGraspAgent
             from don_gym.descriptor_sources import NetworkDescriptors
             from don_gym.model import torch_device
 
             env = self._env(sensor)
-            agent = AxisGraspAgent(env, model=method)
+            kind, model = agent_model(method)
+            agent = PoseGraspAgent(env, model=model) if kind == "pose" else AxisGraspAgent(env, model=model)
             if isinstance(agent.source, NetworkDescriptors):
                 agent.source.network.to(torch_device(self.device))
             self._agents[key] = (agent, agent.wrap(env))
@@ -412,8 +427,9 @@ def run_grasp_benchmark(
     An episode is ``env.reset(seed, options={"pose_id": k})`` (a random pose: ``env.reset(seed)``) of the grasp-mode env
     (:class:`don_gym.sim.env.PickPlaceEnv`, ``control="grasp"``) and one step with the action of an
     :class:`~don_gym.agents.AxisGraspAgent` built for the method (``"oracle"``, a shipped network
-    name or a checkpoint path). Outcomes: ``fail`` (part not lifted), ``grasp only`` (lifted, but
-    dropped or placed with the wrong orientation) and ``grasp & place``.
+    name or a checkpoint path; ``pose:MODEL``: a :class:`~don_gym.agents.PoseGraspAgent`). Outcomes:
+    ``fail`` (part not lifted), ``grasp only`` (lifted, but dropped or placed with the wrong orientation)
+    and ``grasp & place``.
 
     Every method is loaded once here first, so a wrong name or a network for another object fails
     before any episode runs.
@@ -431,9 +447,12 @@ def run_grasp_benchmark(
     method_info = {}
     trained_sizes = {}
     for method in config.methods:
-        source = load_descriptor_source(method, object_model)
+        kind, model = agent_model(method)
+        source = load_descriptor_source(model, object_model)
         metadata = getattr(source, "metadata", None)
-        method_info[method] = {"method": source.method, "descriptor_dim": source.descriptor_dim} | (
+        # A pose agent's kind keeps its prefix: the paper's targets are the axis agent's.
+        method_kind = f"{POSE_AGENT_PREFIX}{source.method}" if kind == "pose" else source.method
+        method_info[method] = {"method": method_kind, "agent": kind, "descriptor_dim": source.descriptor_dim} | (
             {"training_steps": metadata.training_steps, "arch": metadata.arch} if metadata is not None else {}
         )
         if metadata is not None:

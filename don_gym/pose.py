@@ -21,6 +21,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -123,6 +124,20 @@ class PoseTargets:
     @property
     def symmetric(self) -> bool:
         return self.rings is not None
+
+    @cached_property
+    def tree(self) -> cKDTree:
+        """k-d tree of :attr:`descriptors`."""
+        return cKDTree(self.descriptors)
+
+    @cached_property
+    def off_part_tree(self) -> cKDTree | None:
+        """k-d tree of the distinct :attr:`off_part_descriptors` (None without them)."""
+        if self.off_part_descriptors is None:
+            return None
+        # Off-part pixels often share one descriptor (a learned background); a tree of many equal points
+        # is slow to query and no more telling than one of them.
+        return cKDTree(np.unique(np.round(self.off_part_descriptors, 4), axis=0))
 
     @property
     def defined_up_to(self) -> str | None:
@@ -451,8 +466,8 @@ def part_pixels(
         return np.linalg.norm(image[..., list(targets.channels)] - background, axis=2) > threshold
     if targets.off_part_descriptors is not None:
         pixels = image[..., list(targets.channels)].reshape(-1, len(targets.channels))
-        to_part = cKDTree(targets.descriptors).query(pixels, k=1)[0]
-        to_rest = cKDTree(targets.off_part_descriptors).query(pixels, k=1)[0]
+        to_part = targets.tree.query(pixels, k=1)[0]
+        to_rest = targets.off_part_tree.query(pixels, k=1)[0]
         return (to_part < to_rest).reshape(image.shape[:2])
     return np.ones(image.shape[:2], dtype=bool)
 
@@ -469,7 +484,7 @@ def match_to_targets(
     """
     descriptors = np.asarray(descriptors, dtype=np.float32)
     k = min(16, len(targets.descriptors))
-    distances, indices = cKDTree(targets.descriptors).query(descriptors, k=k)
+    distances, indices = targets.tree.query(descriptors, k=k)
     distances, indices = distances.reshape(len(descriptors), k), indices.reshape(len(descriptors), k)
     places = targets.rings if targets.rings is not None else targets.points
     apart = (
@@ -752,7 +767,7 @@ def estimate_pose(
     # Pixels within the distance limit of some target first (without a mask that is every pixel, of
     # which the part may be a small share), then a sample of them for the ratio test.
     limit = targets.max_distance if config.max_descriptor_distance is None else config.max_descriptor_distance
-    near = cKDTree(targets.descriptors).query(image[v, u][:, list(targets.channels)], k=1)[0] <= limit
+    near = targets.tree.query(image[v, u][:, list(targets.channels)], k=1)[0] <= limit
     v, u = v[near], u[near]
     on_part = np.zeros_like(mask)
     on_part[v, u] = True

@@ -114,8 +114,8 @@ def object_symmetries(model: Any, max_sym_disc_step: float = MAX_SYM_DISC_STEP) 
 
 def _symmetric_gt_points(T_gt: np.ndarray, points: np.ndarray, symmetries: np.ndarray) -> np.ndarray:
     """(S, N, 3) model points placed by the ground truth composed with each symmetry."""
-    T = np.einsum("ij,sjk->sik", T_gt, np.asarray(symmetries, dtype=np.float64))
-    return np.einsum("sij,nj->sni", T[:, :3, :3], points) + T[:, None, :3, 3]
+    T = np.matmul(T_gt, np.asarray(symmetries, dtype=np.float64))  # (S, 4, 4)
+    return np.matmul(T[:, :3, :3], points.T).transpose(0, 2, 1) + T[:, None, :3, 3]
 
 
 def mssd(T_est: np.ndarray, T_gt: np.ndarray, points: np.ndarray, symmetries: np.ndarray) -> float:

@@ -272,3 +272,25 @@ def test_cli_pose_writes_bop_results_bop_reads(pose_dataset, tmp_path, capsys):
     assert len(rows) == 4 and {r["obj_id"] for r in rows} == {1}
     # t in millimetres: the part lies some 0.3-0.6 m from the camera.
     assert all(200.0 < r["t"][2] < 800.0 for r in rows)
+
+
+# --- grasping from a pose ------------------------------------------------------------------------
+
+
+def test_pose_grasp_agent_beside_the_axis_agent_in_the_grasp_benchmark():
+    from don_gym.grasp_benchmark import GraspBenchmarkConfig, agent_model, run_grasp_benchmark
+
+    assert agent_model("pose:toolcap/supervised-edge") == ("pose", "toolcap/supervised-edge")
+    assert agent_model("oracle") == ("axis", "oracle")
+    config = GraspBenchmarkConfig(
+        methods=("oracle", "pose:oracle"), poses=(0, 3), repeats=1, sensors=("ideal",), image_size=(160, 120)
+    )
+    result = run_grasp_benchmark(config, workers=1, progress=False)
+    assert result.method_info["pose:oracle"]["method"] == "pose:oracle"
+    assert result.method_info["pose:oracle"]["agent"] == "pose"
+    by_method = {m: [e for e in result.episodes if e["method"] == m] for m in config.methods}
+    # Perfect descriptors and exact depth: the pose's grasp lands within millimetres, the +axis the right way.
+    for episode in by_method["pose:oracle"]:
+        assert episode["outcome"] == "grasp_and_place", episode
+        assert episode["position_error_m"] < 0.004 and episode["yaw_error_rad"] < np.radians(3.0)
+    assert len(by_method["oracle"]) == 2

@@ -62,7 +62,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         nargs="+",
         default=None,
         metavar="MODEL",
-        help="'oracle', shipped network names or checkpoint paths (default: oracle and the shipped "
+        help="'oracle', shipped network names or checkpoint paths, grasped by the two-descriptor axis agent; "
+        "pose:MODEL grasps with the same model's 6D pose estimate instead (PoseGraspAgent), e.g. "
+        "--methods toolcap/supervised-edge pose:toolcap/supervised-edge (default: oracle and the shipped "
         "supervised-edge, supervised-mask and self-supervised networks of the object)",
     )
     grasp.add_argument("--poses", nargs="+", type=int, default=None, help="fixed pose ids (default: 0..7)")
