@@ -272,6 +272,10 @@ def test_cli_pose_writes_bop_results_bop_reads(pose_dataset, tmp_path, capsys):
     assert len(rows) == 4 and {r["obj_id"] for r in rows} == {1}
     # t in millimetres: the part lies some 0.3-0.6 m from the camera.
     assert all(200.0 < r["t"][2] < 800.0 for r in rows)
+    # --pose-depth without --pose: one line, nothing written.
+    tracking = ["evaluate", "--data", str(pose_dataset), "--models", "oracle", "--pose-depth", "none"]
+    assert main([*tracking, "--out", str(tmp_path / "o"), "--no-progress"]) != 0
+    assert "only with --pose" in capsys.readouterr().err and not (tmp_path / "o").exists()
 
 
 # --- grasping from a pose ------------------------------------------------------------------------

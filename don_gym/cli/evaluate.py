@@ -108,7 +108,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--pose-depth",
         choices=("sensor", "ideal", "none"),
-        default="sensor",
+        default=None,
         help="with --pose: depth for the estimate: the dataset's sensor depth (default; 3D-3D RANSAC and ICP), the "
         "simulator's ideal depth, or none (RGB-only PnP)",
     )
@@ -140,6 +140,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.threads < 1:
         raise DonGymError(f"--threads {args.threads}: expected at least 1")
+    if args.pose_depth is not None and not args.pose:
+        raise DonGymError(f"--pose-depth {args.pose_depth}: only with --pose (tracking takes --depth)")
     if args.batch_size is not None and args.batch_size < 1:
         raise DonGymError(f"--batch-size {args.batch_size}: expected at least 1")
     torch_device(args.device)  # a bad or absent device is refused before the work
@@ -174,14 +176,10 @@ def run_pose(args: argparse.Namespace, datasets: list, models: list[str]) -> int
     """``--pose``: the pose evaluation of :mod:`don_gym.pose_evaluation`, printed and written to ``--out``."""
     from don_gym.pose_evaluation import evaluate_pose, pose_table, write_pose_outputs
 
+    depth = args.pose_depth or "sensor"
     result = evaluate_pose(
-        datasets,
-        models,
-        depths=(args.pose_depth,),
-        max_scenes=args.max_scenes,
-        progress=not args.no_progress,
-        device=args.device,
-    )[args.pose_depth]
+        datasets, models, depths=(depth,), max_scenes=args.max_scenes, progress=not args.no_progress, device=args.device
+    )[depth]
     summary = result.summary()
     print(f"6D pose, {summary['object']}, depth: {summary['depth']} ({summary['note']})")
     print(pose_table(summary))  # before writing: a disk that fills up meanwhile loses no result
