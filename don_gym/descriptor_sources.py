@@ -193,6 +193,48 @@ class OracleDescriptors(DescriptorSource):
         return image
 
 
+class PileOracleDescriptors(OracleDescriptors):
+    """:class:`OracleDescriptors` for a scene of several instances (a pile in a bin): every instance of its part
+    rendered with exact occlusion between them (:class:`~don_gym.render.MultiPartDescriptorRenderer`), so the
+    instances of the part look alike as a network of the part sees them; other parts and anything else the
+    observed depth shows in front become background (the occlusion check of :class:`OracleDescriptors`).
+
+    ``info["instances"]`` lists the instances (dicts with ``part``, the part's name, and ``T_world_object``),
+    ``info["T_world_camera"]`` the true camera pose; an info without ``instances`` renders its
+    ``T_world_object`` alone, as :class:`OracleDescriptors`.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        from don_gym.render import MultiPartDescriptorRenderer
+
+        self._pile_renderer = MultiPartDescriptorRenderer(
+            [self.object_model.mesh], [self._field.vertex_descriptors], self._field.background
+        )
+
+    def descriptor_image(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> np.ndarray:
+        if info is None or "instances" not in info:
+            return super().descriptor_image(obs, info)
+        intrinsics = _intrinsics_of(obs)
+        T_camera_world = invert_transform(np.asarray(info["T_world_camera"], dtype=np.float64))
+        poses = [
+            T_camera_world @ np.asarray(i["T_world_object"], dtype=np.float64)
+            for i in info["instances"]
+            if i["part"] == self.object_model.name
+        ]
+        if not poses:
+            return np.broadcast_to(
+                self._field.background, (intrinsics.height, intrinsics.width, self.descriptor_dim)
+            ).copy()
+        rendered = self._pile_renderer.render(intrinsics, [(0, pose) for pose in poses])
+        image = rendered.descriptor_image
+        if self.occlusion_check and "depth" in obs:
+            depth = np.asarray(obs["depth"], dtype=np.float32)
+            hidden = rendered.object_mask & (depth > 0) & (depth < rendered.depth_m - self.occlusion_tolerance_m)
+            image[hidden] = self._field.background
+        return image
+
+
 class NetworkDescriptors(DescriptorSource):
     """A trained DON: ``network.descriptor_image(obs["rgb"])``. :func:`load_descriptor_source` makes
     one from a shipped short name (``"toolcap/supervised-edge"``, see :mod:`don_gym.zoo`) or a path.

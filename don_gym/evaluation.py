@@ -20,7 +20,12 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from don_gym.dataset import DEPTH_SOURCES, DONDataset, SceneRecord
-from don_gym.descriptor_sources import DescriptorSource, NetworkDescriptors, load_descriptor_source
+from don_gym.descriptor_sources import (
+    DescriptorSource,
+    NetworkDescriptors,
+    PileOracleDescriptors,
+    load_descriptor_source,
+)
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics, backproject_depth, invert_transform, project_points, transform_points
 from don_gym.keypoints import descriptor_distances, project_visible
@@ -398,6 +403,8 @@ def frame_observation(dataset: DONDataset, scene: int, frame: int) -> tuple[dict
         "camera_intrinsics": record.intrinsics.as_array().astype(np.float32),
     }
     info = {"T_world_object": record.T_world_object, "T_world_camera": record.T_world_camera[frame]}
+    if dataset.scene_kind == "bin":  # a pile: every instance, for the oracle of each part
+        info["instances"] = [i for i in record.instances if "T_world_object" in i]
     return obs, info
 
 
@@ -614,13 +621,21 @@ class _SceneReference:
     masks: list[np.ndarray]  # per frame, the part's pixels
 
 
-def _scene_reference(dataset: DONDataset, scene: int, config: TrackingConfig) -> _SceneReference:
+def _scene_reference(
+    dataset: DONDataset, scene: int, config: TrackingConfig, instance_id: int | None = None
+) -> _SceneReference:
+    """The reference pixels of a scene's part, or with ``instance_id`` of that instance of a pile (its pixels in
+    the ``instance`` images; the frame where it shows most usable pixels is its reference frame)."""
     record: SceneRecord = dataset.scenes[scene]
     depth_ideal = [dataset.image(scene, f, "depth_ideal") for f in range(record.num_frames)]
-    masks = [np.asarray(dataset.image(scene, f, "mask"), dtype=bool) for f in range(record.num_frames)]
+    if instance_id is None:
+        masks = [np.asarray(dataset.image(scene, f, "mask"), dtype=bool) for f in range(record.num_frames)]
+    else:
+        masks = [dataset.image(scene, f, "instance") == instance_id for f in range(record.num_frames)]
     usable = [usable_reference_mask(masks[f], depth_ideal[f], config.erode_px) for f in range(record.num_frames)]
     frame = int(np.argmax([u.sum() for u in usable]))
-    rng = np.random.default_rng(np.random.SeedSequence([config.seed, record.index]))
+    entropy = [config.seed, record.index] if instance_id is None else [config.seed, record.index, instance_id]
+    rng = np.random.default_rng(np.random.SeedSequence(entropy))
     uv = select_reference_pixels(usable[frame], config.points_per_scene, rng)
     points, _ = world_points_at(uv, depth_ideal[frame], record.intrinsics, record.T_world_camera[frame])
     projections = [
@@ -698,10 +713,19 @@ def evaluate_tracking_depths(
     progress: bool = True,
     device: str = "cpu",
     batch_size: int | None = None,
+    part: str | None = None,
 ) -> dict[str, TrackingResult]:
     """:func:`evaluate_tracking` for several depths of the predicted points in one pass: ``{depth: result}``,
     each result's config with that depth. The matches depend only on the descriptors, so each method
-    runs once per frame whatever the number of depths."""
+    runs once per frame whatever the number of depths.
+
+    Datasets of bins (``scene_kind`` "bin") are evaluated for one ``part`` (its name; see
+    :func:`evaluate_tracking_per_part`): every instance of the part in a scene has its own reference pixels,
+    drawn on its visible pixels (``instance`` images) in the frame showing most of it, followed through the
+    frames where the ideal depth shows them (so occlusion by other instances counts), and matched in the whole
+    image, among the other instances; the oracle renders every instance of the part
+    (:class:`~don_gym.descriptor_sources.PileOracleDescriptors`). The scene list then has one entry per
+    instance (its ``instance_id``), the bootstrap's unit."""
     config.validate()
     depths = tuple(dict.fromkeys(depths))
     if not depths or any(d not in TRACKING_DEPTHS for d in depths):
@@ -716,21 +740,36 @@ def evaluate_tracking_depths(
     labelled = dict(methods) if isinstance(methods, Mapping) else {str(m): m for m in methods}
     if not isinstance(methods, Mapping) and len(labelled) != len(methods):
         raise DonGymError(f"methods {list(methods)}: each method may be given once")
-    model = dataset_object(datasets[0])
-    for other in datasets[1:]:
-        differences = model.shape_signature.differences(dataset_object(other).shape_signature)
-        if differences:
-            raise DonGymError(
-                f"datasets {datasets[0].root} and {other.root} show different parts ({'; '.join(differences)}); "
-                "pool only datasets of one part"
-            )
-    sources = {name: load_descriptor_source(ref, model) for name, ref in labelled.items()}
+    pile = any(data.scene_kind == "bin" for data in datasets)
+    if pile:
+        model = _pile_part(datasets, part)
+    else:
+        if part is not None:
+            raise DonGymError(f"part={part!r}: only datasets of bins hold several parts; these hold one")
+        model = dataset_object(datasets[0])
+        for other in datasets[1:]:
+            differences = model.shape_signature.differences(dataset_object(other).shape_signature)
+            if differences:
+                raise DonGymError(
+                    f"datasets {datasets[0].root} and {other.root} show different parts ({'; '.join(differences)}); "
+                    "pool only datasets of one part"
+                )
+    sources = {
+        name: PileOracleDescriptors(model) if pile and isinstance(ref, str) and ref == "oracle"
+        else load_descriptor_source(ref, model)
+        for name, ref in labelled.items()
+    }  # fmt: skip
     for source in sources.values():
         if isinstance(source, NetworkDescriptors):
             source.network.to(run_on)
     axis = model.symmetry_axis
     halves_point, halves_axis = part_halves_axis(model)
-    plan = [(d, s) for d, data in enumerate(datasets) for s in range(len(data.scenes))[: config.max_scenes]]
+    plan = [
+        (d, s, instance)
+        for d, data in enumerate(datasets)
+        for s in range(len(data.scenes))[: config.max_scenes]
+        for instance in (_part_instances(data.scenes[s], model.name) if pile else [None])
+    ]
     common_keys = (
         "scene_id",
         "dataset",
@@ -750,9 +789,9 @@ def evaluate_tracking_depths(
     collected: dict[str, list[dict[str, np.ndarray]]] = {name: [] for name in sources}
     scenes: list[dict[str, Any]] = []
     reference_points = 0
-    total = len(sources) * sum(datasets[d].scenes[s].num_frames for d, s in plan)
+    total = len(sources) * sum(datasets[d].scenes[s].num_frames for d, s, _ in plan)
     with tqdm(total=total, unit="frame", desc="evaluate", disable=not progress) as bar:
-        for scene_id, (d, scene) in enumerate(plan):
+        for scene_id, (d, scene, instance_id) in enumerate(plan):
             data = datasets[d]
             record = data.scenes[scene]
             scenes.append(
@@ -764,9 +803,13 @@ def evaluate_tracking_depths(
                     "scene_seed": record.metadata.get("seed"),
                     "frames": record.num_frames,
                     "background": background_description(record.metadata.get("background")),
+                    **({} if instance_id is None else {"instance_id": instance_id}),
                 }
             )
-            reference = _scene_reference(data, scene, config)
+            T_world_object = record.T_world_object
+            if instance_id is not None:
+                T_world_object = next(i["T_world_object"] for i in record.instances if i["instance_id"] == instance_id)
+            reference = _scene_reference(data, scene, config, instance_id)
             reference_points += len(reference.uv)
             table_height_m = float(record.metadata.get("table_height_m", 0.0))
             depth_images: dict[str, dict[int, np.ndarray]] = {d_name: {} for d_name in depths}
@@ -818,7 +861,7 @@ def evaluate_tracking_depths(
                             reference.depth_ideal[frame],
                             record.intrinsics,
                             T_world_camera,
-                            record.T_world_object,
+                            T_world_object,
                             halves_point,
                             halves_axis,
                             table_height_m,
@@ -834,7 +877,7 @@ def evaluate_tracking_depths(
                             depth_images[depth_name][frame] = depth
                         predicted, depth_valid = world_points_at(matches.uv, depth, record.intrinsics, T_world_camera)
                         symmetric = (
-                            symmetric_distance(predicted, truth, record.T_world_object, model.center_of_mass, axis)
+                            symmetric_distance(predicted, truth, T_world_object, model.center_of_mass, axis)
                             if axis is not None
                             else np.full(len(rows), np.nan)
                         )
@@ -868,12 +911,85 @@ def evaluate_tracking_depths(
             matches=matches_by_method,
             sources=sources_info,
             dataset_infos=[
-                dict(data.info) | {"scenes_evaluated": sum(1 for dd, _ in plan if dd == k)}
+                dict(data.info)
+                | {"scenes_evaluated": len({s for dd, s, _ in plan if dd == k})}
+                | ({"object": model.name, "part": model.name} if pile else {})
                 for k, data in enumerate(datasets)
             ],
             scenes=scenes,
         )
     return results
+
+
+def _pile_part(datasets: list[DONDataset], part: str | None) -> ObjectModel:
+    """The model of ``part`` in datasets of bins, all of which must hold it (by name and shape)."""
+    from don_gym.bin_dataset import load_part_models
+
+    not_bins = [str(data.root) for data in datasets if data.scene_kind != "bin"]
+    if not_bins:
+        raise DonGymError(f"datasets {not_bins} are not datasets of bins; pool bin datasets only with each other")
+    names = [p["name"] for p in datasets[0].parts]
+    if part is None or part not in names:
+        raise DonGymError(f"part={part!r}: expected one of the bin dataset's parts {names}")
+    model = load_part_models(datasets[0])[part]
+    for other in datasets[1:]:
+        models = load_part_models(other)
+        if part not in models or model.shape_signature.differences(models[part].shape_signature):
+            raise DonGymError(f"dataset {other.root} holds no part {part!r} of the shape of {datasets[0].root}'s")
+    return model
+
+
+def _part_instances(record: SceneRecord, part: str) -> list[int]:
+    return [int(i["instance_id"]) for i in record.instances if i["part"] == part and "T_world_object" in i]
+
+
+def methods_for_part(methods: Sequence[str], part: ObjectModel) -> list[str]:
+    """The model references of ``methods`` that describe ``part``: ``"oracle"`` and the networks trained on it
+    (a network of several parts for each of them, :func:`~don_gym.checkpoints.part_mismatch`)."""
+    from don_gym.checkpoints import part_mismatch
+    from don_gym.zoo import read_don_metadata
+
+    kept = []
+    for method in methods:
+        if method == "oracle" or part_mismatch(read_don_metadata(method), part) is None:
+            kept.append(method)
+    return kept
+
+
+def evaluate_tracking_per_part(
+    dataset: DONDataset | str | Path | Sequence[DONDataset | str | Path],
+    methods: Sequence[str],
+    config: TrackingConfig = TrackingConfig(),
+    progress: bool = True,
+    device: str = "cpu",
+    batch_size: int | None = None,
+) -> dict[str, TrackingResult]:
+    """The tracking protocol on datasets of bins, per part: ``{part name: result}``, each part evaluated with
+    the methods of ``methods`` that describe it (:func:`methods_for_part`: the oracle, its own networks, the
+    networks of several parts that include it). A method that describes none of the parts is refused."""
+    config.validate()
+    datasets = _open_datasets(dataset)
+    if not methods:
+        raise DonGymError("no methods to evaluate; give 'oracle' and/or network names or checkpoint paths")
+    first = datasets[0]
+    if first.scene_kind != "bin":
+        raise DonGymError(f"{first.root}: not a dataset of bins (scene_kind {first.scene_kind!r})")
+    from don_gym.bin_dataset import load_part_models
+
+    models = load_part_models(first)
+    per_part = {name: methods_for_part(methods, model) for name, model in models.items()}
+    unused = [m for m in methods if not any(m in kept for kept in per_part.values())]
+    if unused:
+        raise DonGymError(
+            f"model {unused[0]!r} describes none of the dataset's parts {list(models)}; "
+            "give networks trained on one of them"
+        )
+    return {
+        name: evaluate_tracking_depths(
+            datasets, kept, config, (config.depth,), progress, device, batch_size, part=name
+        )[config.depth]
+        for name, kept in per_part.items()
+    }
 
 
 def worst_matches(matches: TrackingMatches, count: int, per_scene: int | None = 1) -> np.ndarray:
@@ -1013,9 +1129,9 @@ def per_scene_table(summary: Mapping[str, Any]) -> str:
             row = summary["methods"][name]["per_scene"][k]
             with_depth, far = row["matches_with_depth"], row["far_matches"]
             cells.append(f"{far}/{with_depth} ({100.0 * far / with_depth:.1f}%)" if with_depth else "-")
-        lines.append(
-            f"| {scene['dataset_seed']} | {scene['scene_index']} | {scene['background']} | " + " | ".join(cells) + " |"
-        )
+        # A pile's scene appears once per instance of the part (its reference pixels), named "scene#instance".
+        name = f"{scene['scene_index']}#{scene['instance_id']}" if "instance_id" in scene else scene["scene_index"]
+        lines.append(f"| {scene['dataset_seed']} | {name} | {scene['background']} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

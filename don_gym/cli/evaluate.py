@@ -156,6 +156,8 @@ def run(args: argparse.Namespace) -> int:
     )
     config.validate()
     datasets = [DONDataset(path) for path in args.data]
+    if datasets[0].scene_kind == "bin" and not args.pose:
+        return run_bins(args, datasets, config)
     models = args.models if args.models is not None else default_models(dataset_object(datasets[0]))
     if args.pose:
         return run_pose(args, datasets, models)
@@ -169,6 +171,29 @@ def run(args: argparse.Namespace) -> int:
     print(tracking_report(result.summary()))  # before writing: a disk that fills up meanwhile loses no result
     paths = write_tracking_outputs(result, args.out)
     print("wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0
+
+
+def run_bins(args: argparse.Namespace, datasets: list, config) -> int:
+    """Datasets of bins: the tracking protocol per part (:func:`don_gym.evaluation.evaluate_tracking_per_part`),
+    each part's report printed and written to ``--out/<part>/``."""
+    from pathlib import Path
+
+    from don_gym.bin_dataset import load_part_models
+    from don_gym.evaluation import evaluate_tracking_per_part, tracking_report, write_tracking_outputs
+
+    models = args.models
+    if models is None:
+        models = list(dict.fromkeys(m for part in load_part_models(datasets[0]).values() for m in default_models(part)))
+    results = evaluate_tracking_per_part(
+        datasets, models, config, progress=not args.no_progress, device=args.device, batch_size=args.batch_size
+    )
+    for part, result in results.items():
+        print(f"## part {part}")
+        print(tracking_report(result.summary()))
+    for part, result in results.items():
+        paths = write_tracking_outputs(result, Path(args.out) / part)
+        print("wrote " + ", ".join(str(p) for p in paths.values()))
     return 0
 
 
