@@ -26,11 +26,11 @@ from don_gym.sim.bin_task import (
     check_bin_parts,
     lying_footprint_m,
 )
-from don_gym.sim.task import TABLE_TOP_Z_M
+from don_gym.sim.task import TABLE_TOP_Z_M, seated_pose
 
 SMALL = (64, 48)
 #: A grasp beside the bin, on the bare table: the fingers close on nothing.
-EMPTY_GRASP = np.array([0.385, 0.0, 0.02, 0.0], dtype=np.float32)
+EMPTY_GRASP = np.array([0.36, 0.0, 0.02, 0.0], dtype=np.float32)
 
 
 @pytest.fixture(scope="module")
@@ -73,6 +73,13 @@ def test_same_seed_gives_the_same_pile_bit_for_bit(env):
     for key in obs_a:
         assert np.array_equal(obs_a[key], obs_c[key]), key
     assert np.array_equal(info_a["instance_segmentation"], info_c["instance_segmentation"])
+    fresh = gym.make("DONBinPick-v0", image_size=SMALL, sensor="ideal")
+    try:  # a new env (its first episode) drops the same pile too
+        obs_d, info_d = fresh.reset(seed=101)
+        assert all(np.array_equal(a[2], d[2]) for a, d in zip(_poses(info_a), _poses(info_d), strict=True))
+        assert all(np.array_equal(obs_a[key], obs_d[key]) for key in obs_a)
+    finally:
+        fresh.close()
 
 
 def test_instance_segmentation_shows_each_instance_where_its_pose_projects(env):
@@ -149,6 +156,32 @@ def test_picking_the_last_target_clears_the_bin():
         env.close()
 
 
+def test_ee_mode_clears_a_part_pushed_out_and_counts_a_target_placed_in_the_cradle():
+    env = gym.make("DONBinPick-v0", parts={"toolcap": 1, "shaft": 1}, control="ee", image_size=None).unwrapped
+    try:
+        env.reset(seed=107)
+        toolcap, shaft = env.task.instances
+        pushed = shaft.body.T_world_object
+        pushed[0, 3] = bin_inner_bounds()[0] - 0.08  # on the table in front of the bin
+        shaft.body.set_pose(pushed)
+        _, _, terminated, _, info = env.step(np.zeros(5, dtype=np.float32))
+        assert info["cleared"] == [shaft.instance_id] and info["outcome"] == "fail" and info["instance"] is None
+        assert info["targets_left"] == 1 and not terminated
+        # As if the robot had lifted the toolcap and let go of it seated in the cradle.
+        toolcap.lifted = True
+        seated = seated_pose(toolcap.model)
+        seated[2, 3] += 0.002
+        toolcap.body.set_pose(seated)
+        for _ in range(20):
+            _, reward, terminated, truncated, info = env.step(np.zeros(5, dtype=np.float32))
+            if terminated or truncated:
+                break
+        assert info["outcome"] == "grasp_and_place" and info["instance"] == toolcap.instance_id and reward == 1.0
+        assert info["cleared"] == [toolcap.instance_id] and terminated and info["end_reason"] == "cleared"
+    finally:
+        env.close()
+
+
 @pytest.mark.parametrize("control", ["grasp", "ee"])
 def test_gymnasium_and_sb3_check_env(control):
     from gymnasium.utils.env_checker import check_env
@@ -182,13 +215,13 @@ def test_bin_capacity_follows_the_floor_and_the_parts_footprints():
     toolcap = {"toolcap": load_object("toolcap")}
     length, diameter = lying_footprint_m(toolcap["toolcap"])
     assert (length, diameter) == pytest.approx((0.040, 0.034), abs=2e-4)
-    # Half the 0.17 x 0.24 m floor (204 cm^2) holds 14 toolcaps lying down (14 x 13.6 cm^2 = 190 cm^2).
-    assert int(0.5 * BIN_INNER_SIZE_M[0] * BIN_INNER_SIZE_M[1] // (length * diameter)) == 14
-    check_bin_parts({"toolcap": 14}, toolcap)
+    # Half the 0.20 x 0.28 m floor (280 cm^2) holds 20 toolcaps lying down (20 x 13.6 cm^2 = 272 cm^2).
+    assert int(0.5 * BIN_INNER_SIZE_M[0] * BIN_INNER_SIZE_M[1] // (length * diameter)) == 20
+    check_bin_parts({"toolcap": 20}, toolcap)
     with pytest.raises(DonGymError, match="more parts than fit"):
-        check_bin_parts({"toolcap": 15}, toolcap)
-    with pytest.raises(DonGymError, match=r"'shaft' is 0.180 m long; the bin .* takes parts up to 0.162 m long"):
-        check_bin_parts({"shaft": 1}, {"shaft": load_object("shaft", scale=1.5)})
+        check_bin_parts({"toolcap": 21}, toolcap)
+    with pytest.raises(DonGymError, match=r"'shaft' is 0.240 m long; the bin .* takes parts up to 0.192 m long"):
+        check_bin_parts({"shaft": 1}, {"shaft": load_object("shaft", scale=2.0)})
 
 
 @pytest.mark.parametrize(

@@ -107,7 +107,7 @@ class BinPickEnv(PickPlaceEnv):
     wrist RGB-D camera.
 
     ## Description
-    A bin (a tray of 0.17 x 0.24 m inside with 3.5 cm walls, :mod:`~don_gym.sim.bin_task`) stands on the table
+    A bin (a tray of 0.20 x 0.28 m inside with 3.5 cm walls, :mod:`~don_gym.sim.bin_task`) stands on the table
     under the observation pose; the parts of ``parts`` are dropped into it and settle into a pile. The robot
     must take out every instance of the ``target`` part, one per pick, and place each into the cradle as in
     :class:`~don_gym.sim.env.PickPlaceEnv`: lying, its +axis along the cradle's target direction. A picked

@@ -34,7 +34,7 @@ from don_gym.sim.task import (
 BIN_CENTER_XY_M = np.array([(WORKSPACE_M[0] + WORKSPACE_M[1]) / 2, (WORKSPACE_M[2] + WORKSPACE_M[3]) / 2])
 #: Inside of the bin (x along the robot's reach, y across), metres: the table top between the walls. The
 #: wrist camera sees it whole from the observation pose (about 0.35 m x 0.47 m of table at 0.45 m).
-BIN_INNER_SIZE_M = (0.17, 0.24)
+BIN_INNER_SIZE_M = (0.20, 0.28)
 #: Wall height above the table and thickness (m): low enough that the open fingers (8 cm apart) reach
 #: a part lying a few centimetres from a wall, high enough to keep a settling pile in.
 BIN_WALL_HEIGHT_M = 0.035
@@ -64,7 +64,7 @@ DEFAULT_DAMPING = (0.04, 0.04)
 PILE_TRIES = 10
 #: Gap (m) between each finger pad and the part as the open fingers come down (:func:`pregrasp_width_m`):
 #: room for a grasp point some millimetres off.
-PAD_CLEARANCE_M = 0.010
+PAD_CLEARANCE_M = 0.008
 #: Room a top-down grasp needs besides the opening (m, :meth:`BinPickTask.grasp_is_clear`): a finger's
 #: thickness outside its pad (with 3 mm margin), half its width along the part's axis (with margin), and
 #: the fingertips' depth below the grasp point.
@@ -283,11 +283,12 @@ class BinPickTask(PickPlaceTask):
                 best, best_distance = instance, distance
         return best
 
-    def grasp_is_clear(self, instance: Instance) -> bool:
+    def grasp_is_clear(self, instance: Instance, neighbours: bool = True) -> bool:
         """Whether a top-down grasp across the instance's axis at its grasp point finds room: the footprint
         of the fingers opened to :func:`pregrasp_width_m` (and :data:`FINGER_OUTSIDE_PAD_M` beyond each pad)
         across the axis and :data:`FINGER_HALF_WIDTH_M` along it lies inside the walls, and no other instance
-        in play reaches into it above the fingertips' depth (:data:`FINGER_BELOW_GRASP_M` below the grasp point)."""
+        in play reaches into it above the fingertips' depth (:data:`FINGER_BELOW_GRASP_M` below the grasp point;
+        ``neighbours=False``: the walls only)."""
         T = instance.body.T_world_object
         axis = T[:3, :3] @ instance.model.plus_axis
         along = axis[:2] / max(float(np.linalg.norm(axis[:2])), 1e-9)
@@ -301,6 +302,8 @@ class BinPickTask(PickPlaceTask):
         inside = (corners[:, 0] >= x0) & (corners[:, 0] <= x1) & (corners[:, 1] >= y0) & (corners[:, 1] <= y1)
         if not inside.all():
             return False
+        if not neighbours:
+            return True
         for other in self.in_play():
             if other is instance:
                 continue
@@ -317,18 +320,20 @@ class BinPickTask(PickPlaceTask):
         return True
 
     def top_instance(self, part: str | None = None) -> Instance | None:
-        """The instance in play (of ``part``, default any) an oracle picks first: of those with room for the
-        fingers (:meth:`grasp_is_clear`) and that lie rather than stand (+axis within 45 degrees of
-        horizontal), if any, the one whose grasp point lies highest."""
+        """The instance in play (of ``part``, default any) an oracle picks first: the highest grasp point of
+        those with room for the fingers (:meth:`grasp_is_clear`), else of those whose fingers at least clear the
+        walls (they may push a neighbour aside), else of all; lying (+axis within 45 degrees of horizontal)
+        before standing at each stage."""
         candidates = [i for i in self.in_play() if part is None or i.part == part]
         if not candidates:
             return None
 
-        def preference(instance: Instance) -> tuple[bool, bool, float, int]:
+        def preference(instance: Instance) -> tuple[bool, bool, bool, float, int]:
             axis = instance.body.T_world_object[:3, :3] @ instance.model.plus_axis
             lying = abs(float(axis[2])) < np.sqrt(0.5)
             height = float(self.grasp_point_world(instance)[2])
-            return self.grasp_is_clear(instance), lying, height, -instance.instance_id
+            walls = self.grasp_is_clear(instance, neighbours=False)
+            return walls and self.grasp_is_clear(instance), walls, lying, height, -instance.instance_id
 
         return max(candidates, key=preference)
 
