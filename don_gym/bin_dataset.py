@@ -12,11 +12,16 @@ docs/dataset_format.md, section "Bins of several parts".
 
 from __future__ import annotations
 
+import contextlib
 import json
+import multiprocessing as mp
 import shutil
+import signal
 import time
 import warnings
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -25,7 +30,15 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from don_gym import __version__
-from don_gym.build import DatasetConfig, _check_renderer_available, _check_run_options, _clear_dir, scene_seed
+from don_gym.build import (
+    DatasetConfig,
+    _check_renderer_available,
+    _check_run_options,
+    _children_ignore_ctrl_c,
+    _clear_dir,
+    scene_seed,
+    single_threaded_children,
+)
 from don_gym.correspondences import Correspondences
 from don_gym.dataset import (
     DATASET_FILE,
@@ -457,7 +470,7 @@ def build_bin_dataset(
     """Build (or resume) a dataset of bins: ``parts`` maps a part (built-in name or mesh file) to its instances
     per pile; ``config`` as for :func:`~don_gym.build.build_dataset` (its ``object`` is ignored; no distractors).
     Scene ``i`` is the pile of seed ``SeedSequence([seed, i])``; ``shard=(i, n)`` takes scenes ``i, i+n, ...``;
-    finished scenes are skipped. ``workers`` above 1 is accepted and builds in this process (one PyBullet client)."""
+    finished scenes are skipped; ``workers`` processes each own one PyBullet client."""
     out_dir = Path(out_dir)
     start = time.perf_counter()
     shard_index, shard_count = _check_run_options(workers, shard)
@@ -472,17 +485,74 @@ def build_bin_dataset(
             else:
                 todo.append(i)
         if todo:
-            writer = BinSceneWriter(config, out_dir, prepared, lock)
-            try:
-                for i in tqdm(todo, unit="scene", desc="build-dataset (bin)", disable=not progress):
-                    n = writer.write_scene(i)
+            if workers > 1 and len(todo) > 1:
+                results = _write_in_workers(config, dict(parts), out_dir, min(workers, len(todo)), todo)
+            else:
+                results = _write_in_process(config, out_dir, prepared, lock, todo)
+            with (
+                contextlib.closing(results),
+                tqdm(total=len(todo), unit="scene", desc="build-dataset (bin)", disable=not progress) as bar,
+            ):
+                for n in results:
                     written, frames, skipped = written + (n > 0), frames + n, skipped + (n == 0)
-            finally:
-                writer.close()
+                    bar.update(1)
     finally:
         lock.close()
     complete = sum(scene_is_complete(scene_dir(out_dir, i)) for i in range(config.scenes))
     return BinBuildReport(written, skipped, frames, time.perf_counter() - start, complete, config.scenes)
+
+
+def _write_in_process(
+    config: DatasetConfig, out_dir: Path, prepared: _Prepared, lock: DatasetLock, todo: list[int]
+) -> Iterator[int]:
+    writer = BinSceneWriter(config, out_dir, prepared, lock)
+    try:
+        for i in todo:
+            yield writer.write_scene(i)
+    finally:
+        writer.close()
+
+
+_WORKER: BinSceneWriter | None = None
+
+
+def _worker_init(config: DatasetConfig, parts: dict[str, int], out_dir: str) -> None:
+    global _WORKER  # one writer per worker process, created once
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops the pool on Ctrl-C
+    root = Path(out_dir)
+    lock = DatasetLock(root)
+    lock.hold_session()
+    models, counts = resolve_bin_parts(parts)
+    fields = {name: DescriptorField.load(_field_path(root, name)) for name in models}
+    space = PartSpace.from_dict(read_json(root / PART_SPACE_FILE), str(root / PART_SPACE_FILE))
+    _WORKER = BinSceneWriter(config, root, _Prepared(models, counts, fields, space), lock)
+
+
+def _worker_write(scene_index: int) -> int:
+    assert _WORKER is not None
+    return _WORKER.write_scene(scene_index)
+
+
+def _write_in_workers(
+    config: DatasetConfig, parts: dict[str, int], out_dir: Path, workers: int, todo: list[int]
+) -> Iterator[int]:
+    pool = ProcessPoolExecutor(
+        workers, mp_context=mp.get_context("spawn"), initializer=_worker_init, initargs=(config, parts, str(out_dir))
+    )
+    try:
+        with single_threaded_children(), _children_ignore_ctrl_c():
+            pending = {pool.submit(_worker_write, i) for i in todo}
+        while pending:
+            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for future in done:
+                yield future.result()
+    except BrokenProcessPool:
+        raise DatasetError(
+            f"{out_dir}: a worker process died while writing scenes (killed, or out of memory?); finished "
+            "scenes are kept: run the same command again to resume"
+        ) from None
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 # --- reading ------------------------------------------------------------------------------------------------
