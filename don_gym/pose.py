@@ -383,11 +383,16 @@ def pose_targets_for(
 
 
 def _separating_threshold(inside: np.ndarray, outside: np.ndarray) -> float:
-    """The value that best tells ``inside`` (higher) from ``outside`` (lower): fewest errors, each side
-    weighted by its share."""
-    candidates = np.quantile(np.concatenate([inside, outside]), np.linspace(0.005, 0.995, 199))
-    errors = [(inside < c).mean() + (outside >= c).mean() for c in candidates]
-    return float(candidates[int(np.argmin(errors))])
+    """The value ``c`` that best tells ``inside`` (``> c``) from ``outside`` (``<= c``): fewest errors, each
+    side weighted by its share; the middle of the values that do it best. Candidates come from both sides'
+    quantiles and the midpoints between them, so a side of few values (a small part in a large image) is
+    not drowned by the other."""
+    q = np.linspace(0.0, 1.0, 101)
+    values = np.unique(np.concatenate([np.quantile(inside, q), np.quantile(outside, q)]))
+    candidates = np.concatenate([values, (values[1:] + values[:-1]) / 2.0])
+    errors = np.array([(inside <= c).mean() + (outside > c).mean() for c in candidates])
+    # The middle of the best: as far from both sides as they allow.
+    return float(np.median(candidates[errors <= errors.min() + 1e-12]))
 
 
 def calibrate_targets(

@@ -182,6 +182,36 @@ def test_reference_views_give_targets_for_any_source(toolcap, oracle):
     assert mssd(estimate.T_camera_object, T, np.asarray(toolcap.mesh.vertices), object_symmetries(toolcap)) < 0.003
 
 
+class _MaskOracle(OracleDescriptors):
+    """The oracle's two first dimensions and a mask channel: a perfect ``supervised-mask`` network."""
+
+    @property
+    def method(self) -> str:
+        return "supervised-mask"
+
+    @property
+    def reference_from_field(self) -> bool:
+        return False
+
+    def view(self, T: np.ndarray) -> np.ndarray:
+        from don_gym.render import make_target, mask_background
+
+        rendered = self.render(K, T)
+        background = mask_background(self.field.vertex_descriptors)
+        return make_target("mask", rendered.descriptor_image, rendered.object_mask, background)
+
+
+def test_a_mask_channel_tells_the_part_and_is_not_matched(toolcap):
+    source = _MaskOracle(toolcap)
+    targets = pose_targets_for(source, [(source.view(_view(s)), K, _view(s)) for s in (10, 11)])
+    assert targets.mask_channel == 2 and targets.channels == (0, 1) and targets.symmetric
+    assert 0.0 < targets.mask_threshold < 0.5  # calibrated between the background's 0 and the part's inside
+    T = _view(6)
+    estimate = estimate_pose(source.view(T), targets, K, source.render(K, T).depth_m)
+    assert estimate.found
+    assert mssd(estimate.T_camera_object, T, np.asarray(toolcap.mesh.vertices), object_symmetries(toolcap)) < 0.003
+
+
 def test_no_part_in_view_gives_no_pose_and_bad_shapes_are_refused(oracle):
     targets = pose_targets_for(oracle)
     empty = np.broadcast_to(oracle.background, (K.height, K.width, 3)).copy()
