@@ -278,6 +278,11 @@ def prepare_bin_dataset_dir(
             f"distractors={config.distractors} (--distractors): a bin scene has no distractors "
             "(the pile is the clutter)"
         )
+    if config.object_scale is not None:
+        raise DatasetError(
+            f"object_scale={config.object_scale!r} (--object-scale): a bin's parts are built-in parts or mesh "
+            "files in metres (--parts); scale a mesh file to metres first"
+        )
     models, counts = resolve_bin_parts(parts)
     keys = {part_name(str(key)): str(key) for key in parts if part_name(str(key)) in models}
     config = replace(config, object=keys[next(iter(models))], object_scale=None)
