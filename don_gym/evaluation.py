@@ -73,7 +73,17 @@ FAR_MATCH_M = 0.100
 #: A 3D error has a long tail when its 99th percentile is at least this many times its median.
 LONG_TAIL_RATIO = 10.0
 #: Where a match lands (:func:`attribute_matches`), by index.
-MATCH_CATEGORIES: tuple[str, ...] = ("part, wrong end", "part, elsewhere", "table", "background", "robot/fixture")
+#: ``another instance``: on another instance of a pile (datasets of bins only; tables of one part leave it out).
+MATCH_CATEGORIES: tuple[str, ...] = (
+    "part, wrong end",
+    "part, elsewhere",
+    "table",
+    "background",
+    "robot/fixture",
+    "another instance",
+)
+#: The category only piles have.
+PILE_CATEGORY = "another instance"
 #: A matched point this close to the table plane lies on the table top (ideal depth is exact to a
 #: fraction of this; the textured quads lie 0.2 mm above the table).
 TABLE_TOLERANCE_M = 0.005
@@ -288,6 +298,7 @@ def attribute_matches(
     table_height_m: float,
     table_bounds_xy_m: tuple[float, float, float, float] | None = None,
     table_tolerance_m: float = TABLE_TOLERANCE_M,
+    other_instances_mask: np.ndarray | None = None,
 ) -> np.ndarray:
     """Where each match of one frame lands: (N,) int8 index into :data:`MATCH_CATEGORIES`.
 
@@ -304,6 +315,7 @@ def attribute_matches(
         table_bounds_xy_m: (x_min, x_max, y_min, y_max) of the table top, or None when nothing but the
             table top lies on its plane in view (as in the recorded scenes, whose floor is far below).
         table_tolerance_m: how close to the table plane a point counts as on it.
+        other_instances_mask: (H, W) bool, in a pile the pixels of every other instance (of any part), or None.
 
     Categories, first that applies: on the part's mask and on the other side of the split from the
     true point (``part, wrong end``), on the part otherwise (``part, elsewhere``); the matched
@@ -335,6 +347,8 @@ def attribute_matches(
     category = np.full(len(uv), index["background"], dtype=np.int8)
     category[above] = index["robot/fixture"]
     category[on_plane] = index["table"]
+    if other_instances_mask is not None:
+        category[np.asarray(other_instances_mask, dtype=bool)[uv[:, 1], uv[:, 0]]] = index[PILE_CATEGORY]
     category[on_part] = index["part, elsewhere"]
     category[wrong_end] = index["part, wrong end"]
     return category
@@ -619,6 +633,7 @@ class _SceneReference:
     projections: list[tuple[np.ndarray, np.ndarray]]  # per frame: (uv (N, 2), visible (N,))
     depth_ideal: list[np.ndarray]  # per frame
     masks: list[np.ndarray]  # per frame, the part's pixels
+    others: list[np.ndarray] | None = None  # per frame, a pile's other instances' pixels
 
 
 def _scene_reference(
@@ -628,10 +643,13 @@ def _scene_reference(
     the ``instance`` images; the frame where it shows most usable pixels is its reference frame)."""
     record: SceneRecord = dataset.scenes[scene]
     depth_ideal = [dataset.image(scene, f, "depth_ideal") for f in range(record.num_frames)]
+    others = None
     if instance_id is None:
         masks = [np.asarray(dataset.image(scene, f, "mask"), dtype=bool) for f in range(record.num_frames)]
     else:
-        masks = [dataset.image(scene, f, "instance") == instance_id for f in range(record.num_frames)]
+        ids = [dataset.image(scene, f, "instance") for f in range(record.num_frames)]
+        masks = [frame_ids == instance_id for frame_ids in ids]
+        others = [(frame_ids > 0) & (frame_ids != instance_id) for frame_ids in ids]
     usable = [usable_reference_mask(masks[f], depth_ideal[f], config.erode_px) for f in range(record.num_frames)]
     frame = int(np.argmax([u.sum() for u in usable]))
     entropy = [config.seed, record.index] if instance_id is None else [config.seed, record.index, instance_id]
@@ -644,7 +662,7 @@ def _scene_reference(
         )
         for f in range(record.num_frames)
     ]
-    return _SceneReference(frame, uv, points, projections, depth_ideal, masks)
+    return _SceneReference(frame, uv, points, projections, depth_ideal, masks, others)
 
 
 def _network_images(
@@ -868,6 +886,7 @@ def evaluate_tracking_depths(
                             # The recorded scenes show nothing else on the table's plane (their floor lies
                             # 0.75 m below), and the bounds live with PyBullet, which evaluation does not load.
                             table_bounds_xy_m=None,
+                            other_instances_mask=None if reference.others is None else reference.others[frame],
                         ),
                     }
                     for depth_name in depths:
@@ -1097,16 +1116,16 @@ def far_match_table(summary: Mapping[str, Any]) -> str:
     (within the far threshold with ideal depth at the same pixel)."""
     far_mm = summary.get("far_match_mm", FAR_MATCH_M * 1000.0)
     sensor = summary["config"]["depth"] != "ideal"
-    header = f"| method | matches > {far_mm:.0f} mm | " + " | ".join(MATCH_CATEGORIES) + " |"
+    pile = any("instance_id" in scene for scene in summary.get("scene_list", []))
+    categories = [c for c in MATCH_CATEGORIES if pile or c != PILE_CATEGORY]
+    header = f"| method | matches > {far_mm:.0f} mm | " + " | ".join(categories) + " |"
     if sensor:
         header += f" of these, within {far_mm:.0f} mm with ideal depth |"
-    lines = [header, "|---|---:|" + "---:|" * len(MATCH_CATEGORIES) + ("---:|" if sensor else "")]
+    lines = [header, "|---|---:|" + "---:|" * len(categories) + ("---:|" if sensor else "")]
     for name, m in summary["methods"].items():
         far = m["tail"]["far_matches"]
         by = m["far_by_category"]
-        cells = [
-            f"{by[c]['matches']} ({100.0 * by[c]['matches'] / far:.0f}%)" if far else "0" for c in MATCH_CATEGORIES
-        ]
+        cells = [f"{by[c]['matches']} ({100.0 * by[c]['matches'] / far:.0f}%)" if far else "0" for c in categories]
         row = f"| {name} | {far} | " + " | ".join(cells) + " |"
         if sensor:
             row += f" {sum(v['far_only_from_depth'] for v in by.values())} |"

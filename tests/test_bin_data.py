@@ -197,3 +197,5 @@ def test_evaluate_tracks_each_part_among_the_instances(bin_data, multi_part_net,
     assert main([*argv, "--no-progress", "--out", str(out)]) == 0
     assert "## part toolcap" in capsys.readouterr().out
     assert json.loads((out / "shaft" / "tracking.json").read_text())["object"] == "shaft"
+    # Far matches on the pile's other instances have a category of their own.
+    assert "another instance" in (out / "toolcap" / "tracking.md").read_text()
