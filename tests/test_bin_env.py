@@ -116,6 +116,9 @@ def test_instance_segmentation_shows_each_instance_where_its_pose_projects(env):
 def test_oracle_picks_the_top_target_from_the_pile_and_it_is_cleared(env):
     _reset_with_room_to_grasp(env, "toolcap")
     top = env.task.top_instance("toolcap")
+    second = env.task.top_instance("toolcap", exclude=[top.instance_id])
+    assert second.part == "toolcap" and second is not top
+    assert np.array_equal(env.oracle_action(exclude=[top.instance_id]), env.oracle_action(instance=second.instance_id))
     _, reward, terminated, truncated, info = env.step(env.oracle_action())
     assert info["outcome"] in ("grasp_only", "grasp_and_place"), info["outcome"]
     assert info["instance"] == top.instance_id and info["part"] == "toolcap" and info["lifted"]

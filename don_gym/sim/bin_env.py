@@ -5,7 +5,7 @@ one part. Registered as ``DONBinPick-v0``, ``DONToolcapBinPick-v0`` and ``DONSha
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -169,7 +169,9 @@ class BinPickEnv(PickPlaceEnv):
       instance in play (``visible_only=True``: those the last wrist image shows).
     - :meth:`instance_segmentation`: the last wrist image's instance ids per pixel.
     - :meth:`oracle_action`: the grasp action of a perfect perception for an instance (default: the target
-      instance whose grasp point lies highest).
+      instance the task prefers, :meth:`~don_gym.sim.bin_task.BinPickTask.top_instance`: room for the fingers,
+      lying, highest; ``exclude=`` ids to try last, e.g. the one the last attempt failed on).
+    - ``task.grasp_is_clear(instance)``: whether the fingers find room around an instance (walls, neighbours).
     - Attributes: ``target`` (part name), ``part_names`` (in instance-id order), ``models`` (part name ->
       :class:`~don_gym.objects.ObjectModel`), ``task`` (:class:`~don_gym.sim.bin_task.BinPickTask`).
     """
@@ -427,12 +429,15 @@ class BinPickEnv(PickPlaceEnv):
         return self._finish_step(outcome, picked, cleared, {})
 
     # ------------------------------------------------------ for oracles
-    def oracle_action(self, instance: int | None = None, flip: bool = False) -> np.ndarray:  # type: ignore[override]
+    def oracle_action(  # type: ignore[override]
+        self, instance: int | None = None, flip: bool = False, exclude: Iterable[int] = ()
+    ) -> np.ndarray:
         """The grasp-mode action of a perfect perception for instance ``instance`` (an id; default: the target
-        instance in play whose grasp point lies highest): its grasp point in the world and the world yaw of its
-        +axis projected on the table (``flip``: plus pi). Uses the true pose: tests and baselines only."""
+        instance :meth:`~don_gym.sim.bin_task.BinPickTask.top_instance` prefers, those in ``exclude`` last, e.g.
+        the one the last attempt failed on): its grasp point in the world and the world yaw of its +axis
+        projected on the table (``flip``: plus pi). Uses the true pose: tests and baselines only."""
         if instance is None:
-            chosen = self.task.top_instance(self.target)
+            chosen = self.task.top_instance(self.target, exclude=exclude)
             if chosen is None:
                 raise DonGymError("oracle_action(): no target instance is left in play; reset() first")
         else:

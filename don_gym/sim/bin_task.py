@@ -8,7 +8,7 @@ alone whether a pile fits; the task builds it on a :class:`~don_gym.sim.bullet.B
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -319,21 +319,23 @@ class BinPickTask(PickPlaceTask):
                 return False
         return True
 
-    def top_instance(self, part: str | None = None) -> Instance | None:
+    def top_instance(self, part: str | None = None, exclude: Iterable[int] = ()) -> Instance | None:
         """The instance in play (of ``part``, default any) an oracle picks first: the highest grasp point of
         those with room for the fingers (:meth:`grasp_is_clear`), else of those whose fingers at least clear the
         walls (they may push a neighbour aside), else of all; lying (+axis within 45 degrees of horizontal)
-        before standing at each stage."""
+        before standing at each stage. Instances whose ids are in ``exclude`` come last (e.g. one just failed)."""
+        excluded = {int(i) for i in exclude}
         candidates = [i for i in self.in_play() if part is None or i.part == part]
         if not candidates:
             return None
 
-        def preference(instance: Instance) -> tuple[bool, bool, bool, float, int]:
+        def preference(instance: Instance) -> tuple[bool, bool, bool, bool, float, int]:
             axis = instance.body.T_world_object[:3, :3] @ instance.model.plus_axis
             lying = abs(float(axis[2])) < np.sqrt(0.5)
             height = float(self.grasp_point_world(instance)[2])
             walls = self.grasp_is_clear(instance, neighbours=False)
-            return walls and self.grasp_is_clear(instance), walls, lying, height, -instance.instance_id
+            fresh = instance.instance_id not in excluded
+            return fresh, walls and self.grasp_is_clear(instance), walls, lying, height, -instance.instance_id
 
         return max(candidates, key=preference)
 
