@@ -84,6 +84,8 @@ MATCH_CATEGORIES: tuple[str, ...] = (
 )
 #: The category only piles have.
 PILE_CATEGORY = "another instance"
+#: Where a reference descriptor's best match is searched (:attr:`TrackingConfig.match_within`).
+MATCH_WITHIN = ("image", "instance")
 #: A matched point this close to the table plane lies on the table top (ideal depth is exact to a
 #: fraction of this; the textured quads lie 0.2 mm above the table).
 TABLE_TOLERANCE_M = 0.005
@@ -118,6 +120,9 @@ class TrackingConfig:
         erode_px: reference pixels keep this many pixels from the object silhouette.
         seed: seed of the reference-pixel draw.
         max_scenes: evaluate only the first scenes (None: all).
+        match_within: ``"image"`` (the paper's: the best match anywhere in the image) or ``"instance"`` (a
+            diagnostic: only among the pixels the part, in a pile the reference's own instance, shows in that
+            frame, so the error says how well a method localises a point on the right instance, given it).
     """
 
     points_per_scene: int = 16
@@ -126,6 +131,7 @@ class TrackingConfig:
     erode_px: int = 1
     seed: int = 0
     max_scenes: int | None = None
+    match_within: str = "image"
 
     def validate(self) -> None:
         def integer(name: str, minimum: int) -> None:
@@ -143,6 +149,8 @@ class TrackingConfig:
         integer("seed", 0)
         if self.max_scenes is not None:
             integer("max_scenes", 1)
+        if self.match_within not in MATCH_WITHIN:
+            raise DonGymError(f"match_within={self.match_within!r}: expected one of {list(MATCH_WITHIN)}")
 
 
 # --- pure core ----------------------------------------------------------------------------------
@@ -214,7 +222,10 @@ class Matches:
 
 
 def match_descriptors(
-    descriptor_image: np.ndarray, references: np.ndarray, true_uv: np.ndarray | None = None
+    descriptor_image: np.ndarray,
+    references: np.ndarray,
+    true_uv: np.ndarray | None = None,
+    candidates: np.ndarray | None = None,
 ) -> Matches:
     """Best match (argmin L2 over the whole image) of each reference descriptor.
 
@@ -223,10 +234,17 @@ def match_descriptors(
         references: (N, D) reference descriptors.
         true_uv: optional (N, 2) integer pixels of the true matches (rows with a negative
             coordinate are skipped) for the fraction of pixels closer than the true match.
+        candidates: optional (H, W) bool, the only pixels a match may land on (and that count as closer);
+            None or an empty mask: every pixel.
     """
     distances = descriptor_distances(descriptor_image, references)  # (N, H, W)
     count, height, width = distances.shape
     flat = distances.reshape(count, height * width)
+    pixels = height * width
+    if candidates is not None and np.asarray(candidates).any():
+        allowed = np.asarray(candidates, dtype=bool).reshape(-1)
+        flat = np.where(allowed[None], flat, np.inf)
+        pixels = int(allowed.sum())
     best = np.argmin(flat, axis=1)
     uv = np.stack([best % width, best // width], axis=1).astype(np.int64)
     fraction = np.full(count, np.nan)
@@ -235,7 +253,7 @@ def match_descriptors(
         ok = (true_uv >= 0).all(axis=1) & (true_uv[:, 0] < width) & (true_uv[:, 1] < height)
         rows = np.flatnonzero(ok)
         at_true = flat[rows, true_uv[rows, 1] * width + true_uv[rows, 0]]
-        fraction[rows] = (flat[rows] < at_true[:, None]).sum(axis=1) / float(height * width)
+        fraction[rows] = (flat[rows] < at_true[:, None]).sum(axis=1) / float(pixels)
     return Matches(uv, flat[np.arange(count), best], fraction)
 
 
@@ -853,7 +871,10 @@ def evaluate_tracking_depths(
                     image = batched.get(frame)
                     if image is None:
                         image = source.descriptor_image(*frame_observation(data, scene, frame))
-                    matches = match_descriptors(image, ref_descriptors[rows], np.rint(true_uv[rows]).astype(np.int64))
+                    candidates = reference.masks[frame] if config.match_within == "instance" else None
+                    matches = match_descriptors(
+                        image, ref_descriptors[rows], np.rint(true_uv[rows]).astype(np.int64), candidates
+                    )
                     truth = reference.points_world[rows]
                     T_world_camera = record.T_world_camera[frame]
                     ideal_points, _ = world_points_at(

@@ -192,6 +192,11 @@ def test_evaluate_tracks_each_part_among_the_instances(bin_data, multi_part_net,
         assert result.matches["oracle"].error_3d_m.size > 0
     # The oracle renders every shaft: its matches land on the shaft seen (here the only one), within millimetres.
     assert np.median(results["shaft"].matches["oracle"].symmetric_error_m) < 0.005
+    # Searched on the reference's own instance only, the oracle finds the toolcaps' points too.
+    within = evaluate_tracking_per_part(
+        bin_data, ["oracle"], TrackingConfig(points_per_scene=4, match_within="instance"), progress=False
+    )
+    assert np.median(within["toolcap"].matches["oracle"].symmetric_error_m) < 0.005
     out = tmp_path / "eval"
     argv = ["evaluate", "--data", str(bin_data.root), "--models", "oracle", multi_part_net, "--points", "2"]
     assert main([*argv, "--no-progress", "--out", str(out)]) == 0

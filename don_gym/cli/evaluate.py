@@ -89,6 +89,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="a point counts as occluded when the ideal depth at its projection differs by more (default: 4)",
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of the reference-pixel draw (default: 0)")
+    parser.add_argument(
+        "--match-within",
+        choices=("image", "instance"),
+        default="image",
+        help="search each best match in the whole image (default, the paper's) or, as a diagnostic, only on the "
+        "part's pixels in that frame (in a pile: the reference's own instance)",
+    )
     parser.add_argument("--max-scenes", type=int, default=None, help="evaluate only the first N scenes")
     parser.add_argument("--threads", type=int, default=1, help="torch threads for the networks (default: 1)")
     parser.add_argument("--device", default="cpu", help="device of the networks: cpu (default), cuda, cuda:N or auto")
@@ -153,6 +160,7 @@ def run(args: argparse.Namespace) -> int:
         visibility_tolerance_m=args.visibility_tolerance_mm / 1000.0,
         seed=args.seed,
         max_scenes=args.max_scenes,
+        match_within=args.match_within,
     )
     config.validate()
     datasets = [DONDataset(path) for path in args.data]
