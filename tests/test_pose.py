@@ -328,3 +328,25 @@ def test_pose_grasp_agent_beside_the_axis_agent_in_the_grasp_benchmark():
         assert episode["outcome"] == "grasp_and_place", episode
         assert episode["position_error_m"] < 0.004 and episode["yaw_error_rad"] < np.radians(3.0)
     assert len(by_method["oracle"]) == 2
+
+
+def test_end_swap_check_turns_a_swapped_pose_back(toolcap, oracle):
+    from don_gym.pose import _end_swap
+
+    targets = pose_targets_for(oracle)
+    swap = _end_swap(targets)
+    points = np.asarray(toolcap.mesh.vertices)
+    assert mssd(T_GT @ swap, T_GT, points, object_symmetries(toolcap)) > 0.3 * targets.diameter_m
+    assert np.allclose(swap @ swap, np.eye(4))
+    # Descriptors that name the ends the wrong way round: the field of the part turned end over end.
+    T = _view(7)
+    swapped_view = oracle.render(K, T @ swap)
+    view = oracle.render(K, T)
+    image = swapped_view.descriptor_image
+    config = PoseConfig(flip_check_ratio=1.02)
+    for check in (None, config):
+        estimate = estimate_pose(
+            image, targets, K, view.depth_m, object_mask=view.object_mask, config=check or PoseConfig()
+        )
+        error = mssd(estimate.T_camera_object, T, points, object_symmetries(toolcap))
+        assert (error < 0.003) == (check is not None), error
