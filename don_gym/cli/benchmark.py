@@ -32,6 +32,8 @@ examples:
   don-gym benchmark grasp --methods oracle run/model.safetensors --sensors d435@0.25 d435@0.75 --out bench/
   don-gym benchmark grasp --quick --random-poses 16
   don-gym benchmark grasp --quick --backgrounds random
+  don-gym benchmark grasp --methods toolcap/supervised-edge pose:toolcap/supervised-edge --repeats 1 \
+      --sensors d435 --out bench/     # the two-descriptor axis agent beside the 6D-pose agent
 
 sensors: presets (ideal, d435, d435-clean, kinect) or NAME@SEVERITY, the preset scaled towards the ideal
 sensor (d435@0.5 = half the D435's noise, holes and calibration error). The last sensor is the headline
