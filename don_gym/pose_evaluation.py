@@ -143,8 +143,21 @@ def _reference_frames(data: DONDataset, count: int = REFERENCE_VIEWS) -> list[in
     return sorted(int(f) for f in np.argsort(sizes)[::-1][:keep])
 
 
-def _primary_pose(record, frame: int) -> np.ndarray:
+def _part_poses(data: DONDataset, record, frame: int) -> dict[int, np.ndarray]:
+    """TRUE poses (camera frame) of the instances of the dataset's primary part (the one evaluated) in a
+    frame, by instance id: every annotated instance in a dataset of one part."""
     poses = record.T_camera_object(frame)
+    if len(data.parts) <= 1:
+        return poses
+    name = data.parts[0]["name"]
+    ids = {int(i["instance_id"]) for i in record.instances if i["part"] == name}
+    return {k: T for k, T in poses.items() if k in ids}
+
+
+def _primary_pose(data: DONDataset, record, frame: int) -> np.ndarray:
+    poses = _part_poses(data, record, frame)
+    if not poses:
+        raise DonGymError(f"{record.path}: frame {frame} shows no instance of the part {data.parts[0]['name']!r}")
     return poses[min(poses)]
 
 
@@ -191,7 +204,7 @@ def evaluate_pose(
             (
                 source.descriptor_image(*frame_observation(datasets[0], 0, f)),
                 ref_record.intrinsics,
-                _primary_pose(ref_record, f),
+                _primary_pose(datasets[0], ref_record, f),
             )
             for f in ref_frames
         ]
@@ -214,7 +227,7 @@ def evaluate_pose(
             K = record.intrinsics
             instances = instance_mask(data, s, f)
             truths = []
-            for instance_id, T in sorted(record.T_camera_object(f).items()):
+            for instance_id, T in sorted(_part_poses(data, record, f).items()):
                 full = silhouette.render(K, T).object_mask
                 if (
                     full.any()
