@@ -298,6 +298,9 @@ def test_cli_pose_writes_bop_results_bop_reads(pose_dataset, tmp_path, capsys):
     summary = __import__("json").loads((out / "pose.json").read_text())
     assert summary["methods"]["oracle"]["mssd_thresholds"][0] == pytest.approx(0.05)
     assert (out / "pose_recall.png").stat().st_size > 0
+    from don_gym.pose_evaluation import method_file_name
+
+    assert method_file_name("toolcap/supervised-edge") == "toolcap-supervised-edge"
     rows = read_pose_results(out / "pose_oracle.csv")
     assert len(rows) == 4 and {r["obj_id"] for r in rows} == {1}
     # t in millimetres: the part lies some 0.3-0.6 m from the camera.
