@@ -13,6 +13,11 @@ and the BOP results files of every method to ``--work``.
     python benchmarks/bench_pose.py            # test split, records RESULTS.md section "pose"
     python benchmarks/bench_pose.py --quick    # 1 development scene x 6 frames per object, temp dir, records nothing
     python benchmarks/bench_pose.py --split dev   # development seeds, section "pose-dev"
+    python benchmarks/bench_pose.py --only grasp  # only the grasp comparison, section "pose-grasp"
+
+The grasp comparison (section ``pose-grasp``, :func:`don_gym.grasp_benchmark.run_grasp_benchmark`, as
+``don-gym benchmark grasp --methods M pose:M ...``): every method's descriptors used twice on the 8 fixed poses,
+by the two-descriptor ``AxisGraspAgent`` and by ``PoseGraspAgent`` (grasp from the estimated 6D pose), D435.
 """
 
 from __future__ import annotations
@@ -32,7 +37,15 @@ from _results import FIGURES, freeze_commit_description, record_section  # noqa:
 
 from don_gym.build import DatasetConfig, build_dataset  # noqa: E402
 from don_gym.evaluation import FRAMES_PER_SCENE, SCENES_PER_SEED, SPENT_SEEDS, SPLIT_SEEDS  # noqa: E402
-from don_gym.grasp_benchmark import default_methods, training_image_size  # noqa: E402
+from don_gym.grasp_benchmark import (  # noqa: E402
+    POSE_AGENT_PREFIX,
+    GraspBenchmarkConfig,
+    default_methods,
+    outcome_table,
+    run_grasp_benchmark,
+    training_image_size,
+    write_grasp_outputs,
+)
 from don_gym.objects import load_object  # noqa: E402
 from don_gym.pose_evaluation import evaluate_pose, pose_table, write_pose_outputs  # noqa: E402
 from don_gym.zoo import read_don_metadata, shipped_names_for  # noqa: E402
@@ -115,6 +128,26 @@ def run_object(args: argparse.Namespace, work: Path, object_name: str, publish: 
     return "\n\n".join(parts)
 
 
+def grasp_comparison(args: argparse.Namespace, work: Path, object_name: str) -> str:
+    """The object's part of section ``pose-grasp``: the oracle and every shipped network, each by the axis agent
+    and by the pose agent, on the fixed poses (2 with ``--quick``), ``--grasp-repeats`` seeds each, D435."""
+    methods = ["oracle", *object_networks(object_name)]
+    config = GraspBenchmarkConfig(
+        object=object_name,
+        methods=tuple(m for method in methods for m in (method, f"{POSE_AGENT_PREFIX}{method}")),
+        repeats=args.grasp_repeats,
+        sensors=("d435",),
+        poses=(0, 1) if args.quick else tuple(range(8)),
+    )
+    result = run_grasp_benchmark(config, workers=args.workers, progress=not args.quick)
+    paths = write_grasp_outputs(result, work / f"pose_grasp_{object_name}")
+    return (
+        f"### {object_name}\n\n{outcome_table(result)}\n\n"
+        f"{len(result.episodes)} episodes in {result.seconds:.0f} s on {result.workers} workers; "
+        f"episodes in `{paths['json']}`."
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--work", default="runs/bench_pose", help="directory for datasets and raw outputs")
@@ -128,6 +161,15 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=FRAMES_PER_SCENE, help="frames per scene")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--objects", nargs="+", default=list(OBJECTS), choices=OBJECTS)
+    parser.add_argument(
+        "--only",
+        choices=("pose", "grasp"),
+        default=None,
+        help="only the pose evaluation (section pose) or only the grasp comparison (section pose-grasp)",
+    )
+    parser.add_argument(
+        "--grasp-repeats", type=int, default=1, help="seeds per fixed pose and method in the grasp comparison"
+    )
     parser.add_argument("--quick", action="store_true", help="tiny smoke run in a temp dir; records nothing")
     args = parser.parse_args()
     freeze_commit_description()
@@ -163,6 +205,24 @@ def main() -> None:
         "that show most of the part are the reference views (the networks' targets and every method's "
         "calibration) and are not scored. Time per image: descriptor image (one CPU thread) plus estimate."
     )
+    if args.only != "grasp":
+        run_pose(args, work, header, publish)
+    if args.only != "pose":
+        grasp_body = (
+            "Each method's descriptors used twice: by the two-descriptor `AxisGraspAgent` (the paper's agent) and "
+            "by `PoseGraspAgent` (`pose:` methods: a grasp along the axis of the 6D pose estimated with "
+            "`don_gym.pose` from the same descriptor image and the D435 depth).\n\n"
+            + "\n\n".join(grasp_comparison(args, work, o) for o in args.objects)
+        )
+        print(grasp_body)
+        if not args.quick and args.split == "test":
+            record_section(
+                "pose-grasp", "Grasping from a 6D pose beside the two-descriptor agent", grasp_body, after="pose"
+            )
+
+
+def run_pose(args: argparse.Namespace, work: Path, header: str, publish: bool) -> None:
+    """Section ``pose`` (``pose-dev``): every object's pose evaluation, printed and recorded."""
     bodies = [run_object(args, work, o, publish) for o in args.objects]
     body = header + "\n\n" + "\n\n".join(bodies)
     print(body)
