@@ -60,6 +60,40 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / norm
 
 
+def surface_to_axis(
+    points_world: np.ndarray, camera_position_world: np.ndarray, radii_m: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Step 2 of the module docstring: the two ring keypoints on the seen surface (2, 3), world metres, moved
+    one ring radius each (``radii_m`` (2,)) onto the part's axis, away from the camera centre (3,) across the
+    axis. Returns the (2, 3) axis points and the unit +axis direction (minus end to plus end)."""
+    p = np.asarray(points_world, dtype=np.float64).reshape(2, 3)
+    camera = np.asarray(camera_position_world, dtype=np.float64).reshape(3)
+    radii = np.asarray(radii_m, dtype=np.float64).reshape(2)
+    axis_points = p.copy()
+    direction = _unit(p[1] - p[0])
+    for _ in range(2):
+        for k in range(2):
+            ray = p[k] - camera
+            across = ray - (ray @ direction) * direction
+            axis_points[k] = p[k] + radii[k] * _unit(across)
+        direction = _unit(axis_points[1] - axis_points[0])
+    return axis_points, direction
+
+
+def axis_grasp_action(
+    points_world: np.ndarray, camera_position_world: np.ndarray, targets: AxisEndTargets, grasp_axial_m: float
+) -> np.ndarray:
+    """Grasp action ``[x, y, z, yaw]`` (float32) from the two ring keypoints (2, 3) of ``targets`` seen from the
+    camera centre (3,): the axis point at axial position ``grasp_axial_m`` (m from the centre of mass along the
+    +axis) and the world yaw of the +axis (steps 2-4 of the module docstring)."""
+    axis_points, direction = surface_to_axis(points_world, camera_position_world, targets.radii_m)
+    t1, t2 = targets.axial_positions_m
+    s = (float(grasp_axial_m) - t1) / (t2 - t1)
+    grasp = axis_points[0] + s * (axis_points[1] - axis_points[0])
+    yaw = float(np.arctan2(direction[1], direction[0]))
+    return np.array([grasp[0], grasp[1], grasp[2], yaw], dtype=np.float32)
+
+
 class AxisGraspAgent:
     """Two tracked descriptors on the axis ends -> grasp point and +axis yaw (module docstring).
 
@@ -193,22 +227,7 @@ class AxisGraspAgent:
 
     def action_from_keypoints(self, points_world: np.ndarray, camera_position_world: np.ndarray) -> np.ndarray:
         """Grasp action ``[x, y, z, yaw]`` (float32) from the two keypoints (2, 3) and the camera centre (3,)."""
-        p = np.asarray(points_world, dtype=np.float64).reshape(2, 3)
-        camera = np.asarray(camera_position_world, dtype=np.float64).reshape(3)
-        t1, t2 = self.targets.axial_positions_m
-        radii = self.targets.radii_m
-        axis_points = p.copy()
-        direction = _unit(p[1] - p[0])
-        for _ in range(2):
-            for k in range(2):
-                ray = p[k] - camera
-                across = ray - (ray @ direction) * direction
-                axis_points[k] = p[k] + radii[k] * _unit(across)
-            direction = _unit(axis_points[1] - axis_points[0])
-        s = (self.grasp_axial_m - t1) / (t2 - t1)
-        grasp = axis_points[0] + s * (axis_points[1] - axis_points[0])
-        yaw = float(np.arctan2(direction[1], direction[0]))
-        return np.array([grasp[0], grasp[1], grasp[2], yaw], dtype=np.float32)
+        return axis_grasp_action(points_world, camera_position_world, self.targets, self.grasp_axial_m)
 
     def act(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
         """The grasp-mode action (4,) float32 for one observation."""

@@ -60,6 +60,11 @@ DEVELOPMENT_SEEDS: tuple[int, ...] = (3101, 3102, 3103)
 SPENT_SEEDS: tuple[int, ...] = (1000,)
 #: The shipped networks' training data (``benchmarks/train_shipped.py``).
 TRAINING_SEEDS: tuple[int, ...] = (0,)
+#: Piles of the bin clearing benchmark (:mod:`don_gym.bin_benchmark`): pile ``i`` is ``reset(seed=SEED + i)``.
+#: Development piles from 0 (the bin env's own tuning used piles 0-19), test piles from 20000, a range no
+#: dataset or decision has used; the recorded figures come from the test piles only.
+BIN_DEVELOPMENT_SEED = 0
+BIN_TEST_SEED = 20000
 #: Dataset seeds of each evaluation split.
 SPLIT_SEEDS: dict[str, tuple[int, ...]] = {"test": TEST_SEEDS, "dev": DEVELOPMENT_SEEDS}
 #: Scenes per seed and frames per scene of an evaluation split: many short scenes, because the

@@ -177,6 +177,54 @@ def soft_match(
     return _soft_from_distances(distances, best_uv, best_distance, window, temperature), best_distance
 
 
+def local_matches(
+    distances: np.ndarray,
+    threshold: float,
+    window_px: float,
+    temperature: float = DEFAULT_SOFT_TEMPERATURE,
+    max_matches: int | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Every place one reference descriptor matches, for scenes with several instances of a part: the local
+    minima of its distance image below ``threshold``, at least ``window_px`` apart (the best first), each
+    refined to the descriptor-weighted mean pixel of a ``window_px`` disc around it as :func:`soft_match` does.
+
+    Args:
+        distances: (H, W) descriptor distances to one reference descriptor (:func:`descriptor_distances`).
+        threshold: largest distance of a match (descriptor units).
+        window_px: suppression and soft-match radius in pixels (a ring's diameter: one match per ring).
+        temperature: soft-match weight scale (descriptor units).
+        max_matches: keep at most this many, the best (None: all).
+
+    Returns:
+        ``(uv, distance)``: (M, 2) float64 sub-pixel coordinates (u, v) and the (M,) float32 distances at the
+        minima, best first.
+    """
+    from scipy.ndimage import minimum_filter
+
+    d = np.asarray(distances, dtype=np.float32)
+    if d.ndim != 2:
+        raise DonGymError(f"distances: expected an (H, W) distance image, got shape {d.shape}")
+    size = 2 * max(1, int(round(window_px))) + 1
+    lowest = minimum_filter(d, size=size, mode="nearest")
+    v, u = np.nonzero((d <= lowest) & (d < threshold))
+    order = np.argsort(d[v, u], kind="stable")
+    kept: list[tuple[int, int]] = []
+    for index in order:
+        if max_matches is not None and len(kept) >= max_matches:
+            break
+        # Plateaus (equal minima, e.g. along a ring's arc) give several pixels: one per window.
+        if all((u[index] - ku) ** 2 + (v[index] - kv) ** 2 > window_px**2 for ku, kv in kept):
+            kept.append((int(u[index]), int(v[index])))
+    best_uv = np.array(kept, dtype=np.int64).reshape(-1, 2)
+    best = d[best_uv[:, 1], best_uv[:, 0]].astype(np.float32)
+    if len(best_uv) == 0:
+        return np.zeros((0, 2)), best
+    K = len(best_uv)
+    stacked = np.broadcast_to(d, (K, *d.shape))
+    uv = _soft_from_distances(stacked, best_uv, best, np.full(K, float(window_px)), temperature)
+    return uv, best
+
+
 def match_confidence(distance: np.ndarray, sigma: float = DEFAULT_CONFIDENCE_SIGMA) -> np.ndarray:
     """Confidence in [0, 1] of a match at descriptor distance ``distance``: ``exp(-(d / sigma)^2)``.
 

@@ -405,6 +405,39 @@ def plot_sweep(
     return _save(fig, path)
 
 
+def plot_rate_bars(
+    rates_by_method: Mapping[str, Mapping[str, tuple[float, float, float]]],
+    path: str | Path,
+    *,
+    title: str | None = None,
+) -> Path:
+    """Rates side by side: per rate (x, a group) one bar per method (colour) with its interval as an error bar.
+
+    ``rates_by_method[method][rate name] = (rate, low, high)``, fractions in [0, 1] (NaN: no trials, no bar).
+    """
+    methods = list(rates_by_method)
+    names = list(rates_by_method[methods[0]]) if methods else []
+    fig = _new_figure(max(5.5, 1.2 * len(names) * max(1, len(methods)) / 2 + 2.5), 3.8, dpi=110, layout="constrained")
+    ax = fig.add_subplot()
+    width = 0.8 / max(1, len(methods))
+    for index, method in enumerate(methods):
+        x = np.arange(len(names)) - 0.4 + width * (index + 0.5)
+        values = np.array([rates_by_method[method][n] for n in names], dtype=np.float64).reshape(-1, 3)
+        rate = values[:, 0]
+        shown = np.isfinite(rate)
+        errors = np.abs(np.stack([rate - values[:, 1], values[:, 2] - rate]))
+        ax.bar(x[shown], rate[shown], width * 0.9, color=f"C{index % 10}", label=method)
+        ax.errorbar(x[shown], rate[shown], yerr=errors[:, shown], fmt="none", ecolor="black", capsize=2, linewidth=0.8)
+    ax.set_xticks(np.arange(len(names)), [n.replace(" (", "\n(") for n in names], fontsize=8)
+    ax.set_ylabel("rate (95% Wilson interval)")
+    ax.set_ylim(0.0, 1.05)
+    ax.grid(True, axis="y", alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    if title:
+        ax.set_title(title, fontsize=10)
+    return _save(fig, path)
+
+
 # --- training (don_gym.train, don_gym.agents.rl) -----------------------------------------------------
 
 

@@ -108,7 +108,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     grasp.add_argument("--device", default="cpu", help="device of the networks: cpu (default), cuda, cuda:N or auto")
     grasp.add_argument("--out", metavar="DIR", default=None, help="write JSON, Markdown and charts here")
     grasp.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.set_defaults(run=run)
+    grasp.set_defaults(run=run)
+    register_bin(kinds)
 
 
 def default_methods(part: ObjectModel) -> list[str]:
@@ -174,5 +175,161 @@ def run(args: argparse.Namespace) -> int:
     print(f"{len(result.episodes)} episodes in {result.seconds:.0f} s on {result.workers} worker(s)")
     if args.out is not None:
         paths = write_grasp_outputs(result, args.out)
+        print("wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0
+
+
+BIN_DESCRIPTION = """\
+bin: the clearing benchmark. Per method, seeded piles of parts in a bin (DONBinPick-v0, pile i is
+reset(seed=SEED+i)) are picked one instance per step until no target part is left (cleared), the env's
+failed attempts in a row run out, or its step limit. Methods: oracle (true poses of the instances seen),
+oracle-descriptors (the descriptor agent on the pile's optimal descriptors), shipped network names or
+checkpoint paths of the target part, or of several parts including it (the descriptor agent,
+don_gym.agents.BinAxisGraspAgent). Reported per method: piles cleared, picks (target parts placed) per
+attempt, wrong-part picks per lift and flipped placements per axis-grasp lift, each with its 95% Wilson
+interval. --shard i/n runs piles i, i+n, ... into OUT/shards/; --merge then makes the whole run's outputs.
+"""
+
+BIN_EPILOG = """\
+examples:
+  don-gym benchmark bin --quick --out bench/
+  don-gym benchmark bin --piles 40 --methods oracle toolcap/supervised-edge --out bench/
+  don-gym benchmark bin --parts toolcap:3,shaft:2 --target shaft --piles 20 --out bench/
+  don-gym benchmark bin --piles 100 --shard 0/4 --out bench/   # ... --shard 3/4, then:
+  don-gym benchmark bin --merge --out bench/
+
+--out writes bin_episodes.json (summary and one record per episode: method, seed, cleared, attempts,
+picks, wrong_part_picks, flipped, ...), bin.md (the table) and bin_rates.png (the chart).
+"""
+
+
+def register_bin(kinds: argparse._SubParsersAction) -> None:
+    parser = kinds.add_parser(
+        "bin",
+        help="clearing piles of parts from a bin per method: clearance, picks per attempt, wrong-part picks",
+        description=BIN_DESCRIPTION,
+        epilog=BIN_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        default=None,
+        metavar="MODEL",
+        help="oracle, oracle-descriptors, shipped network names or checkpoint paths (default: oracle, "
+        "oracle-descriptors and the target part's shipped networks; --quick: the two oracles)",
+    )
+    parser.add_argument(
+        "--parts", default=None, help="the pile, PART:COUNT[,PART:COUNT...] (default: toolcap:3,shaft:2)"
+    )
+    parser.add_argument("--target", default="toolcap", help="the part to pick (default: toolcap)")
+    parser.add_argument("--piles", type=positive_int, default=None, help="piles per method (default: 20; --quick: 2)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of pile 0; pile i is seed + i (default: 0)")
+    parser.add_argument("--sensor", default="d435", help="depth-sensor preset (default: d435)")
+    parser.add_argument(
+        "--image-size",
+        default=None,
+        help="wrist camera WIDTHxHEIGHT (default: the size the networks were trained at; 320x240 for the oracles "
+        "alone; --quick: 160x120 for the oracles alone)",
+    )
+    parser.add_argument("--renderer", default="tiny", help="PyBullet renderer: tiny (default) or egl")
+    parser.add_argument("--quick", action="store_true", help="2 piles, the two oracles at 160x120 (about a minute)")
+    parser.add_argument("--workers", type=int, default=2, help="worker processes (default: 2)")
+    parser.add_argument("--device", default="cpu", help="device of the networks: cpu (default), cuda, cuda:N or auto")
+    parser.add_argument(
+        "--shard",
+        default=None,
+        metavar="i/n",
+        help="run only piles i, i+n, ... into OUT/shards/ (a job array's task); --merge makes the outputs",
+    )
+    parser.add_argument(
+        "--merge", action="store_true", help="make OUT's outputs from the shard files of OUT/shards/, run nothing"
+    )
+    parser.add_argument("--out", metavar="DIR", default=None, help="write JSON, Markdown and the chart here")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.set_defaults(run=run_bin)
+
+
+def run_bin(args: argparse.Namespace) -> int:
+    import torch
+
+    from don_gym.bin_benchmark import (
+        DEFAULT_PARTS,
+        ORACLE_DESCRIPTORS_METHOD,
+        ORACLE_METHOD,
+        BinBenchmarkConfig,
+        bin_table,
+        check_targets,
+        merge_bin_shards,
+        parse_parts_counts,
+        parse_shard,
+        run_bin_benchmark,
+        write_bin_outputs,
+        write_bin_shard,
+    )
+    from don_gym.cli import parse_size
+    from don_gym.errors import DonGymError
+    from don_gym.io import check_output_dir
+    from don_gym.model import torch_device
+
+    if args.merge:
+        if args.out is None or args.shard is not None:
+            raise DonGymError("--merge: expected --out DIR (the folder the shards wrote into) and no --shard")
+        result = merge_bin_shards(args.out)
+        print(bin_table(result))
+        paths = write_bin_outputs(result, args.out)
+        print("wrote " + ", ".join(str(p) for p in paths.values()))
+        return 0
+    shard = parse_shard(args.shard) if args.shard is not None else (0, 1)
+    if shard[1] > 1 and args.out is None:
+        raise DonGymError(f"--shard {args.shard}: expected --out DIR, where the shards and the merge meet")
+    if args.workers < 1:
+        raise DonGymError(f"--workers {args.workers}: expected at least 1")
+    torch_device(args.device)
+    if args.out is not None:
+        check_output_dir(args.out, "--out")
+    torch.set_num_threads(1)
+    if args.parts is None:
+        parts = DEFAULT_PARTS
+    else:
+        from don_gym.bin_dataset import parse_parts
+
+        parts = parse_parts_counts(parse_parts(args.parts))
+    if args.methods is not None:
+        methods = list(args.methods)
+    elif args.quick:
+        methods = [ORACLE_METHOD, ORACLE_DESCRIPTORS_METHOD]
+    else:
+        from don_gym.sim.bin_env import _resolve_parts
+
+        models, _, target = _resolve_parts(dict(parts), args.target, None)
+        methods = default_methods(models[target])
+        methods.insert(1, ORACLE_DESCRIPTORS_METHOD)
+    image_size = None if args.image_size is None else parse_size(args.image_size, "--image-size")
+    if image_size is None and args.quick and set(methods) <= {ORACLE_METHOD, ORACLE_DESCRIPTORS_METHOD}:
+        image_size = (160, 120)
+    config = BinBenchmarkConfig(
+        parts=tuple(parts),
+        target=args.target,
+        methods=tuple(methods),
+        piles=args.piles if args.piles is not None else (2 if args.quick else 20),
+        seed=args.seed,
+        sensor=args.sensor,
+        image_size=image_size,
+        renderer=args.renderer,
+    )
+    result = run_bin_benchmark(
+        config, workers=args.workers, progress=not args.no_progress, device=args.device, shard=shard
+    )
+    if shard[1] > 1:
+        path = write_bin_shard(result, args.out)
+        print(f"shard {shard[0]}/{shard[1]}: {len(result.episodes)} episodes in {result.seconds:.0f} s; wrote {path}")
+        return 0
+    print(bin_table(result))
+    for line in check_targets(result):
+        print(line)
+    print(f"{len(result.episodes)} episodes in {result.seconds:.0f} s on {result.workers} worker(s)")
+    if args.out is not None:
+        paths = write_bin_outputs(result, args.out)
         print("wrote " + ", ".join(str(p) for p in paths.values()))
     return 0

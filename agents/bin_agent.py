@@ -1,0 +1,544 @@
+"""Agents that pick one part's instances out of a bin (:class:`~don_gym.sim.bin_env.BinPickEnv`), one per step.
+
+Both agents turn what they perceive into the same *instance estimates* (each instance's two axis-end ring
+points moved onto its axis, :func:`~don_gym.agents.axis_grasp.surface_to_axis`) and choose among the grasps
+of those instances with the same rule (:func:`rank_grasps`):
+
+- :class:`BinAxisGraspAgent` perceives from the descriptor image alone (any descriptor source of the target
+  part: the oracle, the part's own network, a network of several parts): for each of the two axis-end
+  reference descriptors (:func:`~don_gym.descriptor_sources.axis_end_targets`) the local minima of the
+  descriptor distance below a threshold are candidate ring pixels (:func:`~don_gym.keypoints.local_matches`);
+  a minus-end and a plus-end candidate make an instance when their axis points lie the part's ring spacing
+  apart in 3D (with the observed depth) and the depth between them shows no gap (two rings of neighbouring
+  instances have the bin's floor or another part between them) (:func:`pair_ring_candidates`).
+- :class:`BinOracleAgent` takes the true poses of the target instances the wrist image shows (``info``).
+
+Grasps (:func:`grasp_candidates`): the axis grasp of :class:`~don_gym.agents.AxisGraspAgent` (fingers across
+the axis at the part's grasp point, placeable in the cradle); for a part short enough for the opening, also
+the grasp along its axis (fingers on the end faces: it clears the bin but cannot be placed as the cradle
+wants); for a part standing on an end, grasps across it at several yaws. Each grasp is checked against the
+observed depth (the same point cloud for both agents): no point may lie where the fingers come down
+(:func:`finger_obstruction`), and the fingers must stay inside the bin's walls. The preferred grasp: not one
+that already failed here, fingers clear, placeable, highest (the top of the pile first), least occluded.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from don_gym.agents.axis_grasp import surface_to_axis
+from don_gym.descriptor_sources import (
+    DEFAULT_AXIS_FRACTIONS,
+    AxisEndTargets,
+    DescriptorSource,
+    PileOracleDescriptors,
+    ReferenceFrame,
+    axis_end_targets,
+    default_reference_descriptors,
+    descriptor_field_for,
+    load_descriptor_source,
+)
+from don_gym.errors import DonGymError
+from don_gym.geometry import CameraIntrinsics, backproject_depth, transform_points
+from don_gym.keypoints import DEFAULT_SOFT_TEMPERATURE, descriptor_distances, local_matches, robust_point_from_depth
+from don_gym.model import DenseObjectNet
+from don_gym.objects import ObjectModel
+from don_gym.sim.bin_task import (
+    FINGER_BELOW_GRASP_M,
+    FINGER_HALF_WIDTH_M,
+    FINGER_OUTSIDE_PAD_M,
+    bin_inner_bounds,
+    lying_footprint_m,
+    pregrasp_width_m,
+)
+from don_gym.sim.task import grasp_axial_position_m
+
+#: An instance whose +axis is within 45 degrees of vertical stands on an end.
+STANDING_AXIS_Z = float(np.sqrt(0.5))
+#: Yaws (rad, in [0, pi)) tried for a grasp across a standing instance.
+STANDING_YAWS_RAD = tuple(np.linspace(0.0, np.pi, 8, endpoint=False))
+#: Room (m) between each finger pad and the part it closes on (end faces of the grasp along the axis).
+GRASP_MARGIN_M = 0.003
+#: The fingers' footprint is checked from this far (m) inside the open pads, and from this far (m) above the
+#: fingertips: the depth sensor's noise and the edges it smears at the part's outline are not obstacles.
+PAD_INSET_M = 0.002
+NOISE_ABOVE_FINGERTIPS_M = 0.004
+#: Share of the fingers' footprint that observed points may cover and still count as clear (stray pixels).
+OBSTRUCTION_TOLERANCE = 0.05
+#: Share of the fingers' footprint covered beyond which a grasp is tried only after every less crowded one.
+CROWDED = 0.3
+#: A grasp this close (m) to one that failed, at a yaw this close (rad, modulo pi), counts as tried.
+TRIED_RADIUS_M = 0.015
+TRIED_YAW_RAD = float(np.deg2rad(25.0))
+#: Candidate ring matches: descriptor distance below this fraction of the distance between the two
+#: reference descriptors (the two rings), so a match is nearer its own ring than halfway to the other.
+DEFAULT_MATCH_FRACTION = 0.4
+#: Two rings pair into an instance when their axis points lie the rings' spacing apart within this
+#: fraction of it (or :data:`PAIR_TOLERANCE_MIN_M`, the larger).
+PAIR_TOLERANCE_FRACTION = 0.3
+PAIR_TOLERANCE_MIN_M = 0.006
+#: Depth (m) beyond the two rings' at which a pixel between them is a gap (the pair spans two parts).
+GAP_DEPTH_M = 0.015
+#: A pixel between the rings this much (m) nearer the camera than both is another part lying on top.
+OCCLUDER_DEPTH_M = 0.012
+#: Share of the pixels between the rings that may show a gap.
+MAX_GAP_FRACTION = 0.2
+#: Most candidate pixels per ring kept (the best matches).
+MAX_CANDIDATES_PER_RING = 16
+#: A standing part is also grasped this far (m) below its upper end.
+RIM_GRASP_DEPTH_M = 0.012
+#: Grasp kinds, the preferred first: across the axis (placeable), across a standing part, along the axis.
+GRASP_KINDS = ("across", "standing", "along")
+
+
+@dataclass(frozen=True)
+class InstanceEstimate:
+    """One perceived instance of the target part, world frame, metres.
+
+    Attributes:
+        axis_points_world: (2, 3) points on the axis at the minus-end and plus-end rings' axial positions.
+        occlusion: share (0..1) of the instance's seen stretch between its rings covered by something nearer.
+        match_distance: the larger of its two rings' descriptor distances (0 for the oracle).
+        instance: the true instance id (oracle), else None.
+    """
+
+    axis_points_world: np.ndarray
+    occlusion: float = 0.0
+    match_distance: float = 0.0
+    instance: int | None = None
+
+    @property
+    def direction(self) -> np.ndarray:
+        """(3,) unit +axis direction."""
+        d = self.axis_points_world[1] - self.axis_points_world[0]
+        return d / max(float(np.linalg.norm(d)), 1e-12)
+
+    @property
+    def standing(self) -> bool:
+        return abs(float(self.direction[2])) > STANDING_AXIS_Z
+
+
+@dataclass(frozen=True)
+class GraspCandidate:
+    """A grasp of one instance estimate: the action ``[x, y, z, yaw]`` (yaw: the direction the env takes for the
+    part's +axis; the fingers close across it), its kind (:data:`GRASP_KINDS`), the share of the fingers'
+    footprint that observed points cover (:func:`finger_obstruction`), whether the fingers stay inside the walls,
+    and the estimate's index."""
+
+    action: np.ndarray
+    kind: str
+    obstruction: float
+    walls_clear: bool
+    estimate_index: int
+
+    @property
+    def clear(self) -> bool:
+        return self.walls_clear and self.obstruction <= OBSTRUCTION_TOLERANCE
+
+
+# ------------------------------------------------------------------------------------------------
+# Pure core: clearance, grasps, ranking, ring pairing
+# ------------------------------------------------------------------------------------------------
+
+
+def _closing_frame(yaw_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """(along, across) unit xy vectors of a grasp whose +axis yaw is ``yaw_rad``: the fingers close along ``across``."""
+    along = np.array([np.cos(yaw_rad), np.sin(yaw_rad)])
+    return along, np.array([-along[1], along[0]])
+
+
+def finger_obstruction(points_world: np.ndarray, action: np.ndarray, opening_m: float, pixel_area_m2: float) -> float:
+    """Share of the two fingers' footprint (a top-down grasp ``action`` opened to ``opening_m``) that observed
+    points (N, 3) cover above the fingertips: points across the axis from the pads (less :data:`PAD_INSET_M`) to
+    the fingers' outside (:data:`~don_gym.sim.bin_task.FINGER_OUTSIDE_PAD_M` beyond), within
+    :data:`~don_gym.sim.bin_task.FINGER_HALF_WIDTH_M` along it, higher than
+    :data:`~don_gym.sim.bin_task.FINGER_BELOW_GRASP_M` below the grasp point (plus the sensor's noise), counted
+    against the points the footprint holds at ``pixel_area_m2`` (one pixel's patch of table at the depth seen)."""
+    along, across = _closing_frame(float(action[3]))
+    relative = points_world[:, :2] - np.asarray(action[:2], dtype=np.float64)
+    a, c = np.abs(relative @ along), np.abs(relative @ across)
+    inner, outer = opening_m / 2 - PAD_INSET_M, opening_m / 2 + FINGER_OUTSIDE_PAD_M
+    blocked = (
+        (a <= FINGER_HALF_WIDTH_M)
+        & (c >= inner)
+        & (c <= outer)
+        & (points_world[:, 2] > float(action[2]) - FINGER_BELOW_GRASP_M + NOISE_ABOVE_FINGERTIPS_M)
+    )
+    footprint_points = 2 * (2 * FINGER_HALF_WIDTH_M) * (outer - inner) / max(pixel_area_m2, 1e-12)
+    return float(blocked.sum()) / footprint_points
+
+
+def fingers_inside_walls(action: np.ndarray, opening_m: float) -> bool:
+    """Whether the footprint of the open fingers of ``action`` lies inside the bin's walls."""
+    along, across = _closing_frame(float(action[3]))
+    span = opening_m / 2 + FINGER_OUTSIDE_PAD_M
+    x0, x1, y0, y1 = bin_inner_bounds()
+    for c in (-span, span):
+        for a in (-FINGER_HALF_WIDTH_M, FINGER_HALF_WIDTH_M):
+            x, y = np.asarray(action[:2], dtype=np.float64) + c * across + a * along
+            if not (x0 <= x <= x1 and y0 <= y <= y1):
+                return False
+    return True
+
+
+def grasp_candidates(
+    estimates: Sequence[InstanceEstimate],
+    points_world: np.ndarray,
+    object_model: ObjectModel,
+    targets: AxisEndTargets,
+    grasp_axial_m: float,
+    pixel_area_m2: float,
+) -> list[GraspCandidate]:
+    """Every grasp of every instance estimate (module docstring) with its clearance in the observed point cloud
+    (N, 3), world metres, of pixels covering ``pixel_area_m2`` each (:func:`finger_obstruction`)."""
+    opening = pregrasp_width_m(object_model)
+    length, diameter = lying_footprint_m(object_model)
+    t1, t2 = (float(t) for t in targets.axial_positions_m)
+    axial = (np.asarray(object_model.mesh.vertices, dtype=np.float64) - object_model.center_of_mass) @ np.asarray(
+        object_model.plus_axis, dtype=np.float64
+    )
+    middle_axial = float(axial.min() + axial.max()) / 2  # the along grasp's fingers close on the two end faces
+    along_axis_fits = length + 2 * GRASP_MARGIN_M <= opening
+    out: list[GraspCandidate] = []
+    for index, estimate in enumerate(estimates):
+        q1, q2 = estimate.axis_points_world
+        direction = estimate.direction
+        grasp = q1 + (grasp_axial_m - t1) / (t2 - t1) * (q2 - q1)
+        yaw = float(np.arctan2(direction[1], direction[0]))
+        actions: list[tuple[np.ndarray, str]] = []
+        if estimate.standing:
+            # Across the part at its grasp point, or higher, around the upper rim: the fingertips then stay above
+            # the parts lying around it.
+            ends = [q1 + (end - t1) / (t2 - t1) * (q2 - q1) for end in (axial.min(), axial.max())]
+            top = max(ends, key=lambda p: float(p[2]))
+            upward = (top - grasp) / max(float(np.linalg.norm(top - grasp)), 1e-9)
+            rim = top - RIM_GRASP_DEPTH_M * upward
+            for point in (grasp, rim):
+                for standing_yaw in STANDING_YAWS_RAD:
+                    actions.append((np.array([*point, standing_yaw], dtype=np.float64), "standing"))
+        else:
+            actions.append((np.array([*grasp, yaw], dtype=np.float64), "across"))
+            if along_axis_fits:
+                # Fingers on the end faces: closing along the true axis is a grasp "across" a yaw 90 degrees off.
+                middle = q1 + (middle_axial - t1) / (t2 - t1) * (q2 - q1)
+                action = np.array([*middle, yaw + np.pi / 2], dtype=np.float64)
+                actions.append((action, "along"))
+        for action, kind in actions:
+            action[3] = float(np.arctan2(np.sin(action[3]), np.cos(action[3])))
+            out.append(
+                GraspCandidate(
+                    action=action.astype(np.float32),
+                    kind=kind,
+                    obstruction=finger_obstruction(points_world, action, opening, pixel_area_m2),
+                    walls_clear=fingers_inside_walls(action, opening),
+                    estimate_index=index,
+                )
+            )
+    return out
+
+
+def times_tried(action: np.ndarray, failed_actions: Sequence[np.ndarray]) -> int:
+    """How many failed grasps lie within :data:`TRIED_RADIUS_M` and :data:`TRIED_YAW_RAD` (modulo pi) of a grasp."""
+    tried = 0
+    for failed in failed_actions:
+        near = float(np.linalg.norm(np.asarray(action[:3]) - np.asarray(failed[:3]))) <= TRIED_RADIUS_M
+        turn = abs(float(action[3]) - float(failed[3])) % np.pi
+        tried += bool(near and min(turn, np.pi - turn) <= TRIED_YAW_RAD)
+    return tried
+
+
+def rank_grasps(
+    candidates: Sequence[GraspCandidate],
+    estimates: Sequence[InstanceEstimate],
+    failed_actions: Sequence[np.ndarray] = (),
+) -> list[GraspCandidate]:
+    """The candidates, the preferred first: tried least (:func:`times_tried`), fingers inside the walls, not
+    crowded (:data:`CROWDED`), placeable (:data:`GRASP_KINDS` order), fingers clear, grasp point highest (the top
+    of the pile first), least occluded, least of the fingers' footprint covered."""
+
+    def key(candidate: GraspCandidate) -> tuple:
+        estimate = estimates[candidate.estimate_index]
+        return (
+            times_tried(candidate.action, failed_actions),
+            not candidate.walls_clear,
+            candidate.obstruction > CROWDED,
+            # Across the axis first even where a neighbour is near: closing fingers push it aside, and only such a
+            # grasp can be placed; the others are the way out when the walls or a crowd leave it no room.
+            GRASP_KINDS.index(candidate.kind),
+            not candidate.clear,
+            -round(float(candidate.action[2]) * 100.0),  # centimetres: parts at one level rank by what follows
+            round(estimate.occlusion, 1),
+            round(candidate.obstruction, 2),
+        )
+
+    return sorted(candidates, key=key)
+
+
+def world_point_cloud(depth_m: np.ndarray, intrinsics: CameraIntrinsics, T_world_camera: np.ndarray) -> np.ndarray:
+    """(N, 3) world points (metres) of every pixel with a depth return."""
+    depth = np.asarray(depth_m, dtype=np.float64)
+    points = backproject_depth(intrinsics, depth)[depth > 0]
+    return transform_points(np.asarray(T_world_camera, dtype=np.float64), points)
+
+
+def _segment_depth_shares(
+    depth_m: np.ndarray, uv_a: np.ndarray, uv_b: np.ndarray, depth_a: float, depth_b: float, samples: int = 12
+) -> tuple[float, float]:
+    """(gap share, occluder share) of the observed depth on the image segment between two ring pixels: pixels
+    :data:`GAP_DEPTH_M` deeper than both rings, and :data:`OCCLUDER_DEPTH_M` nearer than both, among those with
+    a return."""
+    H, W = depth_m.shape
+    t = np.linspace(0.15, 0.85, samples)[:, None]
+    uv = np.rint(uv_a[None] + t * (uv_b - uv_a)[None]).astype(int)
+    uv[:, 0] = np.clip(uv[:, 0], 0, W - 1)
+    uv[:, 1] = np.clip(uv[:, 1], 0, H - 1)
+    z = depth_m[uv[:, 1], uv[:, 0]]
+    z = z[z > 0]
+    if len(z) == 0:
+        return 0.0, 0.0
+    deep = float(np.mean(z > max(depth_a, depth_b) + GAP_DEPTH_M))
+    near = float(np.mean(z < min(depth_a, depth_b) - OCCLUDER_DEPTH_M))
+    return deep, near
+
+
+def pair_ring_candidates(
+    points_world: Sequence[np.ndarray],
+    pixels: Sequence[np.ndarray],
+    distances: Sequence[np.ndarray],
+    depth_m: np.ndarray,
+    T_world_camera: np.ndarray,
+    targets: AxisEndTargets,
+) -> list[InstanceEstimate]:
+    """Instances from candidate ring matches: ``points_world[k]`` (M_k, 3) world points, ``pixels[k]`` (M_k, 2)
+    and ``distances[k]`` (M_k,) of the minus-end (k = 0) and plus-end (k = 1) candidates. A pair is an instance
+    when its axis points (:func:`~don_gym.agents.axis_grasp.surface_to_axis`) lie the rings' spacing apart
+    (within :data:`PAIR_TOLERANCE_FRACTION`) and at most :data:`MAX_GAP_FRACTION` of the depth between their
+    pixels lies deeper than both; pairs are taken best first (spacing error, then descriptor distance), each
+    candidate in one instance at most."""
+    camera = np.asarray(T_world_camera, dtype=np.float64)[:3, 3]
+    depth = np.asarray(depth_m, dtype=np.float64)
+    spacing = float(abs(targets.axial_positions_m[1] - targets.axial_positions_m[0]))
+    tolerance = max(PAIR_TOLERANCE_FRACTION * spacing, PAIR_TOLERANCE_MIN_M)
+    camera_z = [
+        np.linalg.norm(np.asarray(p, dtype=np.float64) - camera, axis=1) if len(p) else np.zeros(0)
+        for p in points_world
+    ]
+    pairs = []
+    for i in range(len(points_world[0])):
+        for j in range(len(points_world[1])):
+            ends = np.stack([points_world[0][i], points_world[1][j]])
+            try:
+                axis_points, _ = surface_to_axis(ends, camera, targets.radii_m)
+            except DonGymError:
+                continue
+            error = abs(float(np.linalg.norm(axis_points[1] - axis_points[0])) - spacing)
+            if error > tolerance:
+                continue
+            gap, occluded = _segment_depth_shares(
+                depth, pixels[0][i], pixels[1][j], float(camera_z[0][i]), float(camera_z[1][j])
+            )
+            if gap > MAX_GAP_FRACTION:
+                continue
+            score = error / tolerance + max(float(distances[0][i]), float(distances[1][j]))
+            pairs.append((score, i, j, axis_points, occluded, max(float(distances[0][i]), float(distances[1][j]))))
+    pairs.sort(key=lambda p: p[0])
+    used_minus, used_plus, estimates = set(), set(), []
+    for _, i, j, axis_points, occluded, distance in pairs:
+        if i in used_minus or j in used_plus:
+            continue
+        used_minus.add(i)
+        used_plus.add(j)
+        estimates.append(InstanceEstimate(axis_points, occlusion=occluded, match_distance=distance))
+    return estimates
+
+
+# ------------------------------------------------------------------------------------------------
+# Agents
+# ------------------------------------------------------------------------------------------------
+
+
+def _target_model(env: gym.Env) -> ObjectModel:
+    base = env.unwrapped
+    models, target = getattr(base, "models", None), getattr(base, "target", None)
+    if not isinstance(models, Mapping) or target not in models:
+        raise DonGymError(
+            f"{type(base).__name__} is not a bin env (no models/target); expected a don_gym.sim.bin_env.BinPickEnv"
+        )
+    return models[target]
+
+
+class _BinAgentBase:
+    """What both agents share: the target part's geometry, the grasp choice and the memory of failed grasps."""
+
+    def _setup_geometry(self, object_model: ObjectModel, targets: AxisEndTargets) -> None:
+        self.object_model = object_model
+        self.targets = targets
+        #: Axial position (m from the centre of mass along +axis) of the axis grasp.
+        self.grasp_axial_m = grasp_axial_position_m(object_model)
+        #: Actions of this episode's grasps that lifted nothing (tried last).
+        self.failed_actions: list[np.ndarray] = []
+        self.last_action: np.ndarray | None = None
+        #: The last choice: the instance estimates and the ranked grasps.
+        self.last_estimates: list[InstanceEstimate] = []
+        self.last_ranking: list[GraspCandidate] = []
+
+    def reset(self) -> None:
+        """Forget the failed grasps (call at every env reset)."""
+        self.failed_actions = []
+        self.last_action = None
+
+    def observe_outcome(self, outcome: str) -> None:
+        """Tell the agent the outcome of its last action (``info["outcome"]``): a ``"fail"`` (nothing lifted, as the
+        gripper's width tells a real robot) makes that grasp one to try last."""
+        if outcome == "fail" and self.last_action is not None:
+            self.failed_actions.append(self.last_action)
+
+    def estimates(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None) -> list[InstanceEstimate]:
+        raise NotImplementedError
+
+    def act(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None = None) -> np.ndarray:
+        """The grasp-mode action (4,) float32 for one observation (``info``: the step's, which the oracle and
+        oracle descriptors need). DonGymError when no instance of the target part is found."""
+        estimates = self.estimates(obs, info)
+        if not estimates:
+            raise DonGymError(f"no instance of {self.object_model.name!r} found in the image")
+        intrinsics = CameraIntrinsics.from_array(obs["camera_intrinsics"])
+        depth = np.asarray(obs["depth"], dtype=np.float64)
+        cloud = world_point_cloud(depth, intrinsics, obs["camera_pose"])
+        typical_z = float(np.median(depth[depth > 0])) if (depth > 0).any() else 0.45
+        pixel_area = (typical_z / intrinsics.fx) * (typical_z / intrinsics.fy)
+        candidates = grasp_candidates(estimates, cloud, self.object_model, self.targets, self.grasp_axial_m, pixel_area)
+        ranking = rank_grasps(candidates, estimates, self.failed_actions)
+        self.last_estimates, self.last_ranking = estimates, ranking
+        self.last_action = np.asarray(ranking[0].action, dtype=np.float32)
+        return self.last_action.copy()
+
+
+class BinOracleAgent(_BinAgentBase):
+    """Picks with perfect perception of instances: the true poses of the target instances the wrist image shows
+    (``info["instances"]`` with visible pixels), the grasp chosen as :class:`BinAxisGraspAgent` chooses it.
+
+    ``agent = BinOracleAgent(env)``; per episode ``agent.reset()``, then ``action = agent.act(obs, info)`` and
+    ``agent.observe_outcome(info["outcome"])`` after each step.
+    """
+
+    def __init__(self, env: gym.Env, fractions: tuple[float, float] = DEFAULT_AXIS_FRACTIONS) -> None:
+        object_model = _target_model(env)
+        self._setup_geometry(object_model, axis_end_targets(object_model, fractions=fractions))
+        self.method = "oracle"
+
+    def estimates(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None) -> list[InstanceEstimate]:
+        if info is None or "instances" not in info:
+            raise DonGymError("the bin oracle needs the step's info with 'instances' (true poses); pass act(obs, info)")
+        model = self.object_model
+        out = []
+        for instance in info["instances"]:
+            if instance["part"] != model.name or not instance.get("visible_pixels"):
+                continue
+            T = np.asarray(instance["T_world_object"], dtype=np.float64)
+            local = model.center_of_mass + np.outer(self.targets.axial_positions_m, model.plus_axis)
+            out.append(InstanceEstimate(transform_points(T, local), instance=int(instance["instance"])))
+        return out
+
+    def __repr__(self) -> str:
+        return f"BinOracleAgent(part={self.object_model.name!r})"
+
+
+class BinAxisGraspAgent(_BinAgentBase):
+    """Picks the target part's instances from the descriptor image alone (module docstring).
+
+    ``agent = BinAxisGraspAgent(env, model)``; per episode ``agent.reset()``, then ``action = agent.act(obs, info)``
+    (``info`` only feeds oracle descriptors) and ``agent.observe_outcome(info["outcome"])`` after each step.
+
+    Args:
+        env: a bin env (:class:`~don_gym.sim.bin_env.BinPickEnv`) with images; its target part is the one picked.
+        model: ``"oracle"`` (every instance of the part rendered from the true poses,
+            :class:`~don_gym.descriptor_sources.PileOracleDescriptors`), a shipped network, a checkpoint (of the
+            part, or of several parts including it), a DenseObjectNet or a DescriptorSource of the part.
+        reference_frame: where a network whose descriptor space is not the optimal field reads its reference
+            descriptors (None: a single-part pick env of the target part, reset at the fixed reference pose).
+        fractions: axial fractions of the two ring keypoints.
+        match_fraction: candidate ring matches lie below this fraction of the distance between the two reference
+            descriptors.
+        temperature: soft-match weight scale (descriptor units) that moves each candidate to its ring's arc middle.
+    """
+
+    def __init__(
+        self,
+        env: gym.Env,
+        model: str | Path | DenseObjectNet | DescriptorSource = "oracle",
+        reference_frame: ReferenceFrame | None = None,
+        fractions: tuple[float, float] = DEFAULT_AXIS_FRACTIONS,
+        match_fraction: float = DEFAULT_MATCH_FRACTION,
+        temperature: float = DEFAULT_SOFT_TEMPERATURE,
+    ) -> None:
+        object_model = _target_model(env)
+        if isinstance(model, (str, Path)) and str(model) == "oracle":
+            source: DescriptorSource = PileOracleDescriptors(object_model)
+        else:
+            source = load_descriptor_source(model, object_model)
+        field = source.field if source.reference_from_field else descriptor_field_for(object_model)
+        targets = axis_end_targets(object_model, field, fractions)
+        if reference_frame is None and not source.reference_from_field:
+            reference_frame = single_part_reference_frame(object_model, env)
+        reference = default_reference_descriptors(source, targets, None, reference_frame)
+        if not (np.isfinite(match_fraction) and 0.0 < match_fraction <= 1.0):
+            raise DonGymError(f"match_fraction={match_fraction!r}: expected a fraction in (0, 1]")
+        self._setup_geometry(object_model, targets)
+        self.source = source
+        self.reference_descriptors = np.asarray(reference, dtype=np.float32)
+        self.match_threshold = float(match_fraction) * float(
+            np.linalg.norm(self.reference_descriptors[0] - self.reference_descriptors[1])
+        )
+        self.temperature = float(temperature)
+
+    @property
+    def method(self) -> str:
+        return self.source.method
+
+    def estimates(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None) -> list[InstanceEstimate]:
+        descriptor_image = self.source.descriptor_image(obs, info)
+        depth = np.asarray(obs["depth"], dtype=np.float32)
+        intrinsics = CameraIntrinsics.from_array(obs["camera_intrinsics"])
+        T_world_camera = np.asarray(obs["camera_pose"], dtype=np.float64)
+        valid = depth[depth > 0]
+        typical_z = float(np.median(valid)) if len(valid) else 0.45
+        # One candidate per ring: minima closer than a ring's diameter are one ring's arc.
+        window_px = intrinsics.fx * self.targets.window_m / typical_z
+        distances = descriptor_distances(descriptor_image, self.reference_descriptors)
+        points, pixels, match_distances = [], [], []
+        for k in range(2):
+            uv, distance = local_matches(
+                distances[k], self.match_threshold, window_px, self.temperature, MAX_CANDIDATES_PER_RING
+            )
+            points_camera, ok = robust_point_from_depth(depth, intrinsics, uv) if len(uv) else (np.zeros((0, 3)), [])
+            ok = np.asarray(ok, dtype=bool)
+            points.append(transform_points(T_world_camera, points_camera[ok]) if ok.any() else np.zeros((0, 3)))
+            pixels.append(uv[ok] if len(uv) else uv)
+            match_distances.append(distance[ok] if len(uv) else distance)
+        return pair_ring_candidates(points, pixels, match_distances, depth, T_world_camera, self.targets)
+
+    def __repr__(self) -> str:
+        return f"BinAxisGraspAgent(part={self.object_model.name!r}, method={self.method!r})"
+
+
+def single_part_reference_frame(object_model: ObjectModel, env: gym.Env) -> ReferenceFrame:
+    """A reference frame of the part alone: a pick env (:class:`~don_gym.sim.env.PickPlaceEnv`) of the part with
+    the bin env's camera size and sensor, reset at the fixed reference seed and pose."""
+    from don_gym.sim.env import PickPlaceEnv
+
+    base = env.unwrapped
+    size = None if base.image_size is None else tuple(base.image_size)
+    source = object_model.source
+    part = source[len("builtin:") :] if source.startswith("builtin:") else source
+    pick = PickPlaceEnv(object=part, control="grasp", image_size=size, sensor=base.sensor)
+    try:
+        return ReferenceFrame.from_env(pick)
+    finally:
+        pick.close()

@@ -1,0 +1,178 @@
+"""Agents that pick among instances in a bin, and the clearing benchmark (issue 33 items 4 and 5): small piles,
+small images."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from don_gym.agents import BinAxisGraspAgent, BinOracleAgent
+from don_gym.agents.bin_agent import InstanceEstimate, pair_ring_candidates, rank_grasps
+from don_gym.bin_benchmark import (
+    EPISODE_KEYS,
+    BinBenchmarkConfig,
+    merge_bin_shards,
+    run_bin_benchmark,
+    write_bin_outputs,
+    write_bin_shard,
+)
+from don_gym.cli import main
+from don_gym.descriptor_sources import axis_end_targets
+from don_gym.errors import DonGymError
+from don_gym.keypoints import local_matches
+from don_gym.objects import load_object
+from don_gym.sim.bin_env import BinPickEnv
+
+SMALL_PILE = {"toolcap": 2, "shaft": 1}
+#: A pile of SMALL_PILE with both toolcaps lying in view (the descriptor agent's test) that the oracle clears.
+SEED = 1
+
+
+@pytest.fixture(scope="module")
+def env():
+    bin_env = BinPickEnv(parts=SMALL_PILE, image_size=(160, 120))
+    yield bin_env
+    bin_env.close()
+
+
+def test_oracle_agent_clears_a_small_pile(env):
+    agent = BinOracleAgent(env)
+    obs, info = env.reset(seed=SEED)
+    agent.reset()
+    outcomes = []
+    for _ in range(env.max_steps):
+        action = agent.act(obs, info)
+        # The oracle sees the true instances: every estimate is a visible toolcap, and its grasp is one of them.
+        assert {e.instance for e in agent.last_estimates} <= {
+            i["instance"] for i in info["instances"] if i["part"] == "toolcap" and i["visible_pixels"]
+        }
+        obs, _, terminated, truncated, info = env.step(action)
+        agent.observe_outcome(info["outcome"])
+        outcomes.append(info["outcome"])
+        if terminated or truncated:
+            break
+    assert info["end_reason"] == "cleared", outcomes
+    assert "wrong_part" not in outcomes
+
+
+def test_descriptor_agent_finds_the_instances_and_grasps_a_target(env):
+    agent = BinAxisGraspAgent(env, model="oracle")
+    obs, info = env.reset(seed=SEED)
+    agent.reset()
+    truth = BinOracleAgent(env).estimates(obs, info)
+    found = agent.estimates(obs, info)
+    assert len(found) == len(truth) == 2
+    for estimate in found:  # each found instance lies on a true one (axis points within 1 cm)
+        errors = [np.abs(estimate.axis_points_world - t.axis_points_world).max() for t in truth]
+        assert min(errors) < 0.01
+    action = agent.act(obs, info)
+    _, _, _, _, info = env.step(action)
+    assert info["outcome"] in ("grasp_and_place", "grasp_only")
+    assert info["part"] == "toolcap"
+
+
+def test_local_matches_one_per_spot_best_first():
+    distances = np.ones((20, 30), np.float32)
+    distances[5, 5], distances[5, 6], distances[15, 25] = 0.1, 0.1, 0.05  # a plateau of two pixels, and a better spot
+    uv, best = local_matches(distances, threshold=0.5, window_px=3.0)
+    assert len(uv) == 2 and best[0] == pytest.approx(0.05)
+    np.testing.assert_allclose(uv[0], [25, 15], atol=1e-6)
+    assert uv[1][0] == pytest.approx(5.5, abs=0.01) and uv[1][1] == pytest.approx(5.0)
+    assert len(local_matches(distances, threshold=0.01, window_px=3.0)[0]) == 0
+
+
+def test_rings_pair_by_spacing_and_tried_grasps_go_last():
+    toolcap = load_object("toolcap")
+    targets = axis_end_targets(toolcap)
+    spacing = float(targets.axial_positions_m[1] - targets.axial_positions_m[0])
+    # Two parts lying along x, seen from straight above: surface points one radius above their axis points.
+    camera = np.eye(4)
+    camera[:3, 3] = [0.0, 0.0, 0.5]
+    r = float(targets.radii_m[0])
+    minus = np.array([[0.0, 0.0, r], [0.0, 0.1, r]])
+    plus = np.array([[0.0, 0.1 + spacing, r], [spacing, 0.0, r]])  # listed the other way round
+    pixels = [np.array([[10.0, 10.0], [10.0, 40.0]]), np.array([[10.0, 48.0], [18.0, 10.0]])]
+    depth = np.full((60, 60), 0.5 - r, np.float32)
+    found = pair_ring_candidates([minus, plus], pixels, [np.zeros(2), np.zeros(2)], depth, camera, targets)
+    assert len(found) == 2
+    for estimate in found:
+        assert np.linalg.norm(estimate.axis_points_world[1] - estimate.axis_points_world[0]) == pytest.approx(
+            spacing, abs=1e-3
+        )
+    # A deep gap between two rings (the floor) makes them two parts.
+    depth[:, 10:40] = 0.9
+    assert (
+        pair_ring_candidates(
+            [minus[:1], plus[1:]], [pixels[0][:1], pixels[1][1:]], [[0.0], [0.0]], depth, camera, targets
+        )
+        == []
+    )
+    from don_gym.agents.bin_agent import GraspCandidate
+
+    estimates = [
+        InstanceEstimate(np.array([[0, 0, 0.05], [0.02, 0, 0.05]])),
+        InstanceEstimate(np.array([[0, 0.1, 0.02], [0.02, 0.1, 0.02]])),
+    ]
+    high = GraspCandidate(np.array([0.01, 0, 0.05, 0], np.float32), "across", 0.0, True, 0)
+    low = GraspCandidate(np.array([0.01, 0.1, 0.02, 0], np.float32), "across", 0.0, True, 1)
+    assert rank_grasps([low, high], estimates)[0] is high  # the top of the pile first
+    assert rank_grasps([low, high], estimates, failed_actions=[high.action])[0] is low
+
+
+def _config(**kwargs):
+    values = dict(parts=tuple(SMALL_PILE.items()), methods=("oracle",), piles=3, seed=1, image_size=(96, 72))
+    return BinBenchmarkConfig(**(values | kwargs))
+
+
+def test_benchmark_json_and_shards_merge_to_the_unsharded_run(tmp_path):
+    config = _config()
+    whole = run_bin_benchmark(config, workers=1, progress=False)
+    paths = write_bin_outputs(whole, tmp_path / "whole")
+    data = json.loads(paths["json"].read_text())
+    assert len(data["episodes"]) == 3
+    for record in data["episodes"]:
+        assert set(EPISODE_KEYS) <= set(record)
+        assert isinstance(record["cleared"], bool) and record["method"] == "oracle"
+        assert (
+            record["picks"] + record["grasp_only"] + record["fails"] + record["wrong_part_picks"] == record["attempts"]
+        )
+    assert [r["seed"] for r in data["episodes"]] == [1, 2, 3]
+    summary = data["summary"]["results"]["oracle"]
+    assert summary["clearance"]["total"] == 3 and len(summary["clearance"]["interval_95"]) == 2
+    assert paths["chart"].stat().st_size > 0 and "piles cleared" in paths["table"].read_text()
+    for index in range(2):
+        write_bin_shard(run_bin_benchmark(config, workers=1, progress=False, shard=(index, 2)), tmp_path / "sharded")
+    merged = merge_bin_shards(tmp_path / "sharded")
+    drop = ("seconds",)
+    assert [{k: v for k, v in e.items() if k not in drop} for e in merged.episodes] == [
+        {k: v for k, v in e.items() if k not in drop} for e in whole.episodes
+    ]
+    assert merged.summary()["results"] == whole.summary()["results"]
+
+
+def test_merge_refuses_missing_shards(tmp_path):
+    write_bin_shard(run_bin_benchmark(_config(piles=1), workers=1, progress=False, shard=(0, 2)), tmp_path)
+    with pytest.raises(DonGymError, match=r"shards \[1\] of 2 are missing"):
+        merge_bin_shards(tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--parts", "toolcap:3,bolt:2"], "bolt"),
+        (["--parts", "toolcap:-1,shaft:2"], "-1"),
+        (["--target", "shaft", "--parts", "toolcap:3"], "target='shaft'"),
+        (["--methods", "shaft/supervised-edge"], "shaft"),
+        (["--shard", "2/2"], "--shard '2/2'"),
+        (["--shard", "x"], "--shard 'x'"),
+    ],
+)
+def test_bad_input_is_one_line(tmp_path, capsys, args, message):
+    capsys.readouterr()
+    code = main(["benchmark", "bin", "--quick", "--no-progress", "--out", str(tmp_path / "o"), *args])
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code != 0 and len(lines) == 1 and message in lines[0], err
+    assert not (tmp_path / "o" / "bin_episodes.json").exists()
