@@ -176,3 +176,28 @@ def test_bad_input_is_one_line(tmp_path, capsys, args, message):
     lines = [line for line in err.splitlines() if line.strip()]
     assert code != 0 and len(lines) == 1 and message in lines[0], err
     assert not (tmp_path / "o" / "bin_episodes.json").exists()
+
+
+def test_a_network_of_several_parts_benchmarks_for_its_target(tmp_path):
+    from don_gym.bin_benchmark import check_targets, describe_methods
+    from don_gym.bin_dataset import build_bin_dataset
+    from don_gym.build import DatasetConfig
+    from don_gym.train import TrainConfig, train
+
+    data = tmp_path / "data"
+    build_bin_dataset(DatasetConfig(scenes=1, frames_per_scene=2, image_size=(64, 48), seed=17), SMALL_PILE, data,
+                      progress=False)  # fmt: skip
+    config = TrainConfig(
+        method="supervised-edge", data=str(data), out=str(tmp_path / "run"), steps=2, batch_size=2,
+        crop_size=(64, 48), device="cpu", threads=1, checkpoint_every=100,
+    )  # fmt: skip
+    train(config, progress=False)
+    network = str(tmp_path / "run" / "model.safetensors")
+    for target in ("toolcap", "shaft"):  # one network, either part the target
+        info = describe_methods(_config(methods=(network,), target=target))[network]
+        assert info["method"] == "supervised-edge" and sorted(info["parts"]) == ["shaft", "toolcap"]
+    result = run_bin_benchmark(_config(methods=(network,), piles=1, image_size=None), workers=1, progress=False)
+    assert result.config.image_size == (64, 48)  # the network's training size
+    assert len(result.episodes) == 1 and set(EPISODE_KEYS) <= set(result.episodes[0])
+    # A supervised network of several parts is held to the picking targets.
+    assert any("picks per attempt" in line for line in check_targets(result))
