@@ -12,60 +12,45 @@ docs/dataset_format.md, section "Bins of several parts".
 
 from __future__ import annotations
 
-import contextlib
+import functools
 import json
-import multiprocessing as mp
-import shutil
-import signal
 import time
-import warnings
-from collections.abc import Iterator, Mapping
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from concurrent.futures.process import BrokenProcessPool
-from dataclasses import asdict, dataclass, replace
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm.auto import tqdm
 
-from don_gym import __version__
 from don_gym.build import (
+    BaseSceneWriter,
+    BuildReport,
     DatasetConfig,
-    _check_renderer_available,
+    _check_not_foreign,
     _check_run_options,
-    _children_ignore_ctrl_c,
-    _clear_dir,
-    scene_seed,
-    single_threaded_children,
+    _embed,
+    _part_info,
+    join_dataset_dir,
+    write_scenes,
 )
+from don_gym.build import _dataset_info as _dataset_info_of_part
 from don_gym.correspondences import Correspondences
 from don_gym.dataset import (
     DATASET_FILE,
     FIELD_FILE,
-    FORMAT_NAME,
-    FORMAT_VERSION,
-    SCENE_FILE,
     DatasetLock,
     DONDataset,
     SceneRecord,
     check_dataset_identity,
     check_dataset_info,
-    new_scene_tmp_dir,
-    publish_scene,
     read_json,
-    remove_stale_scene_dirs,
-    scene_dir,
-    scene_is_complete,
-    write_frame,
     write_json,
 )
-from don_gym.descriptors import FIELD_MATCH_ATOL, DescriptorField, embed
+from don_gym.descriptors import FIELD_MATCH_ATOL, DescriptorField
 from don_gym.descriptors.multi_part import DEFAULT_PART_GAP, PartSpace, build_part_space, part_space_for
-from don_gym.errors import DatasetError, DonGymError, SeveralPiecesError
-from don_gym.fusion import fuse_scene, fused_object_masks
+from don_gym.errors import DatasetError, DonGymError
 from don_gym.geometry import invert_transform
-from don_gym.io import LOCK_FILE, write_text_atomic
+from don_gym.io import write_text_atomic
 from don_gym.objects import ObjectModel, ShapeSignature, builtin_names, load_object, part_name
 from don_gym.render import MultiPartDescriptorRenderer, default_edge_width_px, make_instances_target
 
@@ -113,24 +98,6 @@ def resolve_bin_parts(parts: Mapping[str, int]) -> tuple[dict[str, ObjectModel],
     return {n: models[n] for n in keep}, {n: counts[n] for n in keep}
 
 
-def _embed(model: ObjectModel, config: DatasetConfig) -> DescriptorField:
-    try:
-        return embed(model, dim=config.descriptor_dim, symmetric=config.symmetric)
-    except SeveralPiecesError as exc:
-        raise DatasetError(f"part {model.name!r} (--parts): {exc.detail}; a dataset needs parts in one piece") from exc
-
-
-def _part_record(model: ObjectModel, key: str) -> dict[str, Any]:
-    return {
-        "name": model.name,
-        "object_source": model.source,
-        "object_scale": None,
-        "object_signature": model.shape_signature.to_dict(),
-        "mesh_hash": model.mesh_hash,
-        "key": key,
-    }
-
-
 def _dataset_info(
     config: DatasetConfig,
     models: Mapping[str, ObjectModel],
@@ -140,40 +107,20 @@ def _dataset_info(
     space: PartSpace,
 ) -> dict[str, Any]:
     primary = next(iter(models))
-    model = models[primary]
+    parts = [{**_part_info(models[name], None), "key": keys[name]} for name in models]
     return {
-        "format": FORMAT_NAME,
-        "version": FORMAT_VERSION,
-        "don_gym_version": __version__,
-        **asdict(replace(config, object=keys[primary], object_scale=None)),
-        "object_name": model.name,
-        "object_signature": model.shape_signature.to_dict(),
-        "object_source": model.source,
-        "mesh_hash": model.mesh_hash,
-        "descriptor_field_hash": fields[primary].field_hash,
-        "background_descriptor": space.background,
-        "scene_kind": "bin",
-        "parts": [_part_record(models[name], keys[name]) for name in models],
+        **_dataset_info_of_part(
+            replace(config, object=keys[primary], object_scale=None),
+            models[primary],
+            fields[primary],
+            scene_kind="bin",
+            parts=parts,
+            background=space.background,
+        ),
         "bin_parts": dict(counts),
         "part_gap": space.gap,
         "part_space_file": PART_SPACE_FILE,
     }
-
-
-def _check_not_foreign(out_dir: Path) -> None:
-    if out_dir.exists() and not out_dir.is_dir():
-        raise DatasetError(f"{out_dir}: exists and is not a directory; expected a dataset directory")
-    if not out_dir.is_dir():
-        return
-    ours = (LOCK_FILE, FIELD_FILE, PART_SPACE_FILE, PART_FIELDS_DIR, f"{DATASET_FILE}.partial-")
-    foreign = sorted(
-        p.name for p in out_dir.iterdir() if not (p.name.startswith(ours) or p.name.lstrip(".").startswith(ours))
-    )
-    if foreign:
-        raise DatasetError(
-            f"{out_dir}: exists and is not a don_gym dataset (holds {foreign[0]!r}); "
-            "use an empty directory or --overwrite"
-        )
 
 
 def _check_bin_identity(recorded: dict[str, Any], wanted: dict[str, Any], out_dir: Path) -> None:
@@ -221,7 +168,7 @@ def _resolve(
     info_path = out_dir / DATASET_FILE
     recorded = check_dataset_info(read_json(info_path), info_path) if info_path.is_file() else None
     if recorded is None:
-        _check_not_foreign(out_dir)
+        _check_not_foreign(out_dir, (PART_SPACE_FILE, PART_FIELDS_DIR))
     fields = {}
     for name, field in computed.items():
         path = _field_path(out_dir, name)
@@ -286,57 +233,35 @@ def prepare_bin_dataset_dir(
     models, counts = resolve_bin_parts(parts)
     keys = {part_name(str(key)): str(key) for key in parts if part_name(str(key)) in models}
     config = replace(config, object=keys[next(iter(models))], object_scale=None)
-    computed = {name: _embed(model, config) for name, model in models.items()}
+    computed = {name: _embed(model, config, f"part {model.name!r} (--parts)") for name, model in models.items()}
     if overwrite and out_dir.exists() and not out_dir.is_dir():
         raise DatasetError(f"{out_dir}: exists and is not a directory; expected a dataset directory")
-    if not overwrite:
-        _resolve(out_dir, config, models, counts, keys, computed, gap, write=False)
-    _check_renderer_available(config.renderer)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    lock = DatasetLock(out_dir)
-    try:
-        lock.hold_session(exclusive=overwrite)
-        if overwrite:
-            _clear_dir(out_dir)
-            lock.share_session()
-        with lock.metadata():
-            fields, space = _resolve(out_dir, config, models, counts, keys, computed, gap, write=True)
-    except BaseException:
-        lock.close()
-        raise
+    (fields, space), lock = join_dataset_dir(
+        out_dir,
+        config,
+        overwrite,
+        lambda write: _resolve(out_dir, config, models, counts, keys, computed, gap, write),
+    )
     return _Prepared(models, counts, fields, space), lock
 
 
-class BinSceneWriter:
-    """Records and writes bin scenes; owns one PyBullet client.
+class BinSceneWriter(BaseSceneWriter):
+    """Records and writes bin scenes (the machinery: :class:`~don_gym.build.BaseSceneWriter`).
 
-    Per frame: RGB, sensor and ideal depth, ``instance`` (the simulator's segmentation: visible instance id per
-    pixel), ``mask`` (pixels of any instance), the descriptor target of every instance in its part's region of
-    the space, rendered from the *reported* camera pose with exact occlusion between instances
-    (:class:`~don_gym.render.MultiPartDescriptorRenderer`; a pixel keeps its hit where the segmentation names
-    the same instance), and ``target_mask`` (the pixels with a part target). With ``fuse_depth`` the sensor depth
-    fused over the bin, re-rendered per frame, and ``mask_fused`` (fused points inside the bin's walls).
+    Per frame the targets are ``instance`` (the simulator's segmentation: visible instance id per pixel),
+    ``mask`` (pixels of any instance), the descriptor target of every instance in its part's region of the
+    space, with exact occlusion between instances (:class:`~don_gym.render.MultiPartDescriptorRenderer`; a pixel
+    keeps its hit where the segmentation names the same instance), and ``target_mask`` (the pixels with a part
+    target). The fused depth is fused over the bin, ``mask_fused`` the fused points inside the bin's walls.
     """
 
     def __init__(self, config: DatasetConfig, out_dir: Path, prepared: _Prepared, lock: DatasetLock) -> None:
         from don_gym.sim.bin_recorder import BinSceneRecorder
 
-        self.config = config
-        self.out_dir = out_dir
-        self.lock = lock
+        super().__init__(config, out_dir, lock)
         self.prepared = prepared
-        self.names = list(prepared.models)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            self.recorder = BinSceneRecorder(
-                prepared.models,
-                prepared.counts,
-                config.image_size,
-                sensor=config.sensor,
-                renderer=config.renderer,
-                backgrounds=config.backgrounds,
-                lighting=config.lighting,
-            )
+        self.names = self.part_names = list(prepared.models)
+        self._open_recorder(lambda: BinSceneRecorder(prepared.models, prepared.counts, **self._recorder_options()))
         space = prepared.space
         self.renderer = MultiPartDescriptorRenderer(
             [prepared.models[n].mesh for n in self.names],
@@ -344,122 +269,34 @@ class BinSceneWriter:
             space.background,
         )
 
-    def write_scene(self, scene_index: int) -> int:
-        final = scene_dir(self.out_dir, scene_index)
-        with self.lock.scene(scene_index):
-            if scene_is_complete(final):
-                return 0
-            remove_stale_scene_dirs(self.out_dir, scene_index)
-            tmp = new_scene_tmp_dir(self.out_dir, scene_index)
-            try:
-                frames = self._record(tmp, scene_index)
-                return frames if publish_scene(tmp, final) else 0
-            finally:
-                if tmp.exists():
-                    shutil.rmtree(tmp, ignore_errors=True)
+    def _instances(self, scene: Any) -> list[dict[str, Any]]:
+        return scene.instances
 
-    def _record(self, path: Path, scene_index: int) -> int:
-        config = self.config
-        seed = scene_seed(config.seed, scene_index)
-        scene = self.recorder.record(seed=seed, num_frames=config.frames_per_scene)
-        instances = scene.instances
-        ids = [i["instance_id"] for i in instances]
-        part_index = [self.names.index(i["part"]) for i in instances]
-        for f, frame in enumerate(scene.frames):
-            T_camera_world = invert_transform(frame.T_world_camera_reported)
-            rendered = self.renderer.render(
-                scene.intrinsics,
-                [(k, T_camera_world @ i["T_world_object"]) for k, i in zip(part_index, instances, strict=True)],
-                instance_ids=ids,
-                visible_instance_ids=frame.instance_ids,
-            )
-            write_frame(
-                path,
-                f,
-                {
-                    "rgb": frame.rgb,
-                    "depth": frame.depth_m,
-                    "depth_ideal": frame.depth_ideal_m,
-                    "mask": frame.instance_ids > 0,
-                    "instance": frame.instance_ids,
-                    "target_mask": rendered.object_mask,
-                    "descriptor": rendered.descriptor_image,
-                },
-                config.descriptor_dim,
-            )
-        if config.fuse_depth:
-            self._write_fused(path, scene)
-        primary = self.names[0]
-        first = next((i for i in instances if i["part"] == primary), instances[0] if instances else None)
-        write_json(
-            path / SCENE_FILE,
-            {
-                "scene_index": scene_index,
-                "seed": seed,
-                "object": primary,
-                "intrinsics": scene.intrinsics.as_array(),
-                # For readers of one object: the first instance of the primary part.
-                "T_world_object": first["T_world_object"] if first is not None else np.eye(4),
-                "instances": instances,
-                "T_camera_object": [
-                    {
-                        str(i["instance_id"]): invert_transform(fr.T_world_camera) @ i["T_world_object"]
-                        for i in instances
-                    }
-                    for fr in scene.frames
-                ],
-                "T_world_camera": np.stack([fr.T_world_camera for fr in scene.frames]),
-                "T_world_camera_reported": np.stack([fr.T_world_camera_reported for fr in scene.frames]),
-                "table_height_m": scene.table_height_m,
-                "background": scene.background,
-                "fused_depth": config.fuse_depth,
-            },
+    def _frame_targets(self, scene: Any, instances: list[dict[str, Any]], frame: Any) -> dict[str, np.ndarray]:
+        T_camera_world = invert_transform(frame.T_world_camera_reported)
+        rendered = self.renderer.render(
+            scene.intrinsics,
+            [(self.names.index(i["part"]), T_camera_world @ i["T_world_object"]) for i in instances],
+            instance_ids=[i["instance_id"] for i in instances],
+            visible_instance_ids=frame.instance_ids,
         )
-        return len(scene.frames)
+        return {
+            "mask": frame.instance_ids > 0,
+            "instance": frame.instance_ids,
+            "target_mask": rendered.object_mask,
+            "descriptor": rendered.descriptor_image,
+        }
 
-    def _write_fused(self, path: Path, scene) -> None:
+    def _fusion_region(self, scene: Any) -> tuple[tuple[np.ndarray, np.ndarray], dict[str, Any]]:
         from don_gym.sim.bin_recorder import bin_region_world
 
-        reported = [fr.T_world_camera_reported for fr in scene.frames]
         T_box, half = bin_region_world()
         centre = T_box[:3, 3]
         margin = np.array([BIN_FUSION_MARGIN_M, BIN_FUSION_MARGIN_M, 0.0])
         bounds_min = centre - half - margin
         bounds_max = centre + half + margin
         bounds_min[2] = scene.table_height_m - 0.01
-        volume = fuse_scene(
-            [fr.depth_m for fr in scene.frames],
-            scene.intrinsics,
-            reported,
-            (bounds_min, bounds_max),
-            voxel_size_m=self.config.voxel_size_m,
-        )
-        depths, masks = fused_object_masks(
-            volume,
-            scene.intrinsics,
-            reported,
-            bin_region_world(BIN_MASK_WALL_MARGIN_M),
-            table_height_m=scene.table_height_m,
-        )
-        for f, (depth, mask) in enumerate(zip(depths, masks, strict=True)):
-            write_frame(path, f, {"depth_fused": depth, "mask_fused": mask}, self.config.descriptor_dim)
-
-    def close(self) -> None:
-        self.recorder.close()
-
-
-@dataclass(frozen=True)
-class BinBuildReport:
-    scenes_written: int
-    scenes_skipped: int
-    frames_written: int
-    seconds: float
-    scenes_complete: int = 0
-    scenes_total: int = 0
-
-    @property
-    def frames_per_second(self) -> float:
-        return self.frames_written / self.seconds if self.seconds > 0 else 0.0
+        return (bounds_min, bounds_max), {"object_region_world": bin_region_world(BIN_MASK_WALL_MARGIN_M)}
 
 
 def build_bin_dataset(
@@ -471,93 +308,36 @@ def build_bin_dataset(
     overwrite: bool = False,
     progress: bool = True,
     gap: float = DEFAULT_PART_GAP,
-) -> BinBuildReport:
+) -> BuildReport:
     """Build (or resume) a dataset of bins: ``parts`` maps a part (built-in name or mesh file) to its instances
     per pile; ``config`` as for :func:`~don_gym.build.build_dataset` (its ``object`` is ignored; no distractors).
     Scene ``i`` is the pile of seed ``SeedSequence([seed, i])``; ``shard=(i, n)`` takes scenes ``i, i+n, ...``;
     finished scenes are skipped; ``workers`` processes each own one PyBullet client."""
     out_dir = Path(out_dir)
     start = time.perf_counter()
-    shard_index, shard_count = _check_run_options(workers, shard)
+    shard = _check_run_options(workers, shard)
     prepared, lock = prepare_bin_dataset_dir(out_dir, config, parts, overwrite, gap)
     config = replace(config, object=str(read_json(out_dir / DATASET_FILE)["object"]), object_scale=None)
-    written = skipped = frames = 0
-    try:
-        todo = []
-        for i in range(shard_index, config.scenes, shard_count):
-            if scene_is_complete(scene_dir(out_dir, i)):
-                skipped += 1
-            else:
-                todo.append(i)
-        if todo:
-            if workers > 1 and len(todo) > 1:
-                results = _write_in_workers(config, dict(parts), out_dir, min(workers, len(todo)), todo)
-            else:
-                results = _write_in_process(config, out_dir, prepared, lock, todo)
-            with (
-                contextlib.closing(results),
-                tqdm(total=len(todo), unit="scene", desc="build-dataset (bin)", disable=not progress) as bar,
-            ):
-                for n in results:
-                    written, frames, skipped = written + (n > 0), frames + n, skipped + (n == 0)
-                    bar.update(1)
-    finally:
-        lock.close()
-    complete = sum(scene_is_complete(scene_dir(out_dir, i)) for i in range(config.scenes))
-    return BinBuildReport(written, skipped, frames, time.perf_counter() - start, complete, config.scenes)
-
-
-def _write_in_process(
-    config: DatasetConfig, out_dir: Path, prepared: _Prepared, lock: DatasetLock, todo: list[int]
-) -> Iterator[int]:
-    writer = BinSceneWriter(config, out_dir, prepared, lock)
-    try:
-        for i in todo:
-            yield writer.write_scene(i)
-    finally:
-        writer.close()
-
-
-_WORKER: BinSceneWriter | None = None
-
-
-def _worker_init(config: DatasetConfig, parts: dict[str, int], out_dir: str) -> None:
-    global _WORKER  # one writer per worker process, created once
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops the pool on Ctrl-C
-    root = Path(out_dir)
-    lock = DatasetLock(root)
-    lock.hold_session()
-    models, counts = resolve_bin_parts(parts)
-    fields = {name: DescriptorField.load(_field_path(root, name)) for name in models}
-    space = PartSpace.from_dict(read_json(root / PART_SPACE_FILE), str(root / PART_SPACE_FILE))
-    _WORKER = BinSceneWriter(config, root, _Prepared(models, counts, fields, space), lock)
-
-
-def _worker_write(scene_index: int) -> int:
-    assert _WORKER is not None
-    return _WORKER.write_scene(scene_index)
-
-
-def _write_in_workers(
-    config: DatasetConfig, parts: dict[str, int], out_dir: Path, workers: int, todo: list[int]
-) -> Iterator[int]:
-    pool = ProcessPoolExecutor(
-        workers, mp_context=mp.get_context("spawn"), initializer=_worker_init, initargs=(config, parts, str(out_dir))
+    return write_scenes(
+        config,
+        out_dir,
+        lock,
+        lambda: BinSceneWriter(config, out_dir, prepared, lock),
+        functools.partial(_open_bin_writer, config, dict(parts)),
+        workers=workers,
+        shard=shard,
+        progress=progress,
+        start=start,
+        desc="build-dataset (bin)",
     )
-    try:
-        with single_threaded_children(), _children_ignore_ctrl_c():
-            pending = {pool.submit(_worker_write, i) for i in todo}
-        while pending:
-            done, pending = wait(pending, return_when=FIRST_COMPLETED)
-            for future in done:
-                yield future.result()
-    except BrokenProcessPool:
-        raise DatasetError(
-            f"{out_dir}: a worker process died while writing scenes (killed, or out of memory?); finished "
-            "scenes are kept: run the same command again to resume"
-        ) from None
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _open_bin_writer(config: DatasetConfig, parts: dict[str, int], out_dir: Path, lock: DatasetLock) -> BinSceneWriter:
+    """A worker's writer: the parts' fields and the space read back from the dataset."""
+    models, counts = resolve_bin_parts(parts)
+    fields = {name: DescriptorField.load(_field_path(out_dir, name)) for name in models}
+    space = PartSpace.from_dict(read_json(out_dir / PART_SPACE_FILE), str(out_dir / PART_SPACE_FILE))
+    return BinSceneWriter(config, out_dir, _Prepared(models, counts, fields, space), lock)
 
 
 # --- reading ------------------------------------------------------------------------------------------------

@@ -7,6 +7,7 @@ format of :mod:`don_gym.dataset`, resumably, split over worker processes or shar
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import multiprocessing as mp
 import os
@@ -15,12 +16,12 @@ import signal
 import threading
 import time
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -175,7 +176,27 @@ def _check_run_options(workers: Any, shard: Any) -> tuple[int, int]:
     return index, count
 
 
-def _dataset_info(config: DatasetConfig, model: ObjectModel, field: DescriptorField) -> dict[str, Any]:
+def _part_info(model: ObjectModel, scale: float | None) -> dict[str, Any]:
+    """A part's entry in ``dataset.json``'s ``parts``."""
+    return {
+        "name": model.name,
+        "object_source": model.source,
+        "object_scale": scale,
+        "object_signature": model.shape_signature.to_dict(),
+        "mesh_hash": model.mesh_hash,
+    }
+
+
+def _dataset_info(
+    config: DatasetConfig,
+    model: ObjectModel,
+    field: DescriptorField,
+    scene_kind: str = "single",
+    parts: list[dict[str, Any]] | None = None,
+    background: Any = None,
+) -> dict[str, Any]:
+    """``dataset.json`` of a dataset whose (primary) part is ``model`` with descriptor field ``field``; a bin
+    dataset gives its ``parts`` and the ``background`` descriptor of its space."""
     return {
         "format": FORMAT_NAME,
         "version": FORMAT_VERSION,
@@ -186,30 +207,23 @@ def _dataset_info(config: DatasetConfig, model: ObjectModel, field: DescriptorFi
         "object_source": model.source,
         "mesh_hash": model.mesh_hash,
         "descriptor_field_hash": field.field_hash,
-        "background_descriptor": field.background,
-        "scene_kind": "single",
-        "parts": [
-            {
-                "name": model.name,
-                "object_source": model.source,
-                "object_scale": config.object_scale,
-                "object_signature": model.shape_signature.to_dict(),
-                "mesh_hash": model.mesh_hash,
-            }
-        ],
+        "background_descriptor": field.background if background is None else background,
+        "scene_kind": scene_kind,
+        "parts": [_part_info(model, config.object_scale)] if parts is None else parts,
     }
 
 
-def _check_not_foreign(out_dir: Path) -> None:
+def _check_not_foreign(out_dir: Path, also_ours: tuple[str, ...] = ()) -> None:
     """Refuse a directory holding anything but the start of a dataset (a crashed or concurrent build's
-    descriptor field, lock file or temporary files): building would mix our files with someone's."""
+    descriptor field, lock file or temporary files, and names starting with ``also_ours``): building would
+    mix our files with someone's."""
     if out_dir.exists() and not out_dir.is_dir():
         raise DatasetError(f"{out_dir}: exists and is not a directory; expected a dataset directory")
     if not out_dir.is_dir():
         return
     # Another build's files while it starts, its temporary names included; builds of older don_gym versions
     # stacked a second temporary name on the first ("..descriptor_field.npz.partial-a.npz.partial-b").
-    ours = (LOCK_FILE, FIELD_FILE, f"{FIELD_FILE}.partial-", f"{DATASET_FILE}.partial-")
+    ours = (LOCK_FILE, FIELD_FILE, f"{FIELD_FILE}.partial-", f"{DATASET_FILE}.partial-", *also_ours)
     foreign = sorted(
         p.name for p in out_dir.iterdir() if not (p.name.startswith(ours) or p.name.lstrip(".").startswith(ours))
     )
@@ -276,13 +290,15 @@ def _resolve_dataset(
     raise DatasetError(f"{out_dir}: its dataset.json keeps changing while this build starts; try again")
 
 
-def _embed(model: ObjectModel, config: DatasetConfig) -> DescriptorField:
-    """The part's descriptor field as computed here (a new dataset's, or what a recorded one must match)."""
+def _embed(model: ObjectModel, config: DatasetConfig, what: str | None = None) -> DescriptorField:
+    """The part's descriptor field as computed here (a new dataset's, or what a recorded one must match);
+    ``what`` names the part's input in a refusal (default: ``config.object``, --object)."""
     try:
         return embed(model, dim=config.descriptor_dim, symmetric=config.symmetric)
     except SeveralPiecesError as exc:
+        what = f"object {config.object!r} (--object)" if what is None else what
         raise DatasetError(
-            f"object {config.object!r} (--object): {exc.detail}; a dataset needs a part in one piece: join the "
+            f"{what}: {exc.detail}; a dataset needs a part in one piece: join the "
             "pieces, or keep only the largest, in the mesh file"
         ) from exc
 
@@ -389,8 +405,26 @@ def prepare_dataset_dir(
     if overwrite and out_dir.exists() and not out_dir.is_dir():
         raise DatasetError(f"{out_dir}: exists and is not a directory; expected a dataset directory")
     computed = _embed(model, config)
+    field, lock = join_dataset_dir(
+        out_dir, config, overwrite, lambda write: _resolve_dataset(out_dir, config, model, computed, write)
+    )
+    return model, field, lock
+
+
+_Resolved = TypeVar("_Resolved")
+
+
+def join_dataset_dir(
+    out_dir: Path, config: DatasetConfig, overwrite: bool, resolve: Callable[[bool], _Resolved]
+) -> tuple[_Resolved, DatasetLock]:
+    """Create, replace (``overwrite``) or join the dataset in ``out_dir``, checked first: returns what
+    ``resolve(write=True)`` returns under the metadata lock, and the lock, held shared (the caller closes it).
+
+    ``resolve(write)`` checks ``out_dir``'s dataset-level files against the options (read-only first, so that a
+    refused build writes nothing) and, with ``write``, publishes what is missing.
+    """
     if not overwrite:
-        _resolve_dataset(out_dir, config, model, computed, write=False)
+        resolve(False)
     _check_renderer_available(config.renderer)
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -401,11 +435,11 @@ def prepare_dataset_dir(
             _clear_dir(out_dir)
             lock.share_session()
         with lock.metadata():
-            field = _resolve_dataset(out_dir, config, model, computed, write=True)
+            resolved = resolve(True)
     except BaseException:
         lock.close()
         raise
-    return model, field, lock
+    return resolved, lock
 
 
 def scene_seed(seed: int, scene_index: int) -> int:
@@ -413,42 +447,46 @@ def scene_seed(seed: int, scene_index: int) -> int:
     return int(np.random.SeedSequence([seed, scene_index]).generate_state(1)[0])
 
 
-class SceneWriter:
-    """Records and writes scenes; one per worker process (owns one PyBullet client).
+class BaseSceneWriter:
+    """What writing a scene of any kind takes; one per worker process (owns one PyBullet client).
 
-    One scene = the object at one pose on the table, seen by the wrist camera from
-    ``frames_per_scene`` quasi-random poses. Per frame the writer stores RGB, sensor and ideal
-    depth, the simulator's object mask, the supervised descriptor target rendered from the
-    *reported* camera pose (as a real user would have it) and, for the self-supervised method
-    (``fuse_depth``), the sensor depth fused over the scene (TSDF) and re-rendered per frame
-    with object masks from the fused model.
+    :meth:`write_scene` records a scene into a temporary directory and publishes it whole. A scene is
+    ``frames_per_scene`` wrist-camera frames: per frame RGB, sensor and ideal depth and the kind's targets
+    (:meth:`_frame_targets`), rendered from the *reported* camera pose (as a real user would have it); with
+    ``fuse_depth``, for the self-supervised method, the sensor depth fused over the scene (TSDF) and re-rendered
+    per frame with masks from the fused model (in :meth:`_fusion_region`); ``scene.json`` with every instance's
+    part and pose. A kind sets :attr:`recorder` (:meth:`_open_recorder`) and :attr:`part_names` (the primary part
+    first).
     """
 
-    def __init__(self, config: DatasetConfig, out_dir: Path, field: DescriptorField, lock: DatasetLock) -> None:
-        from don_gym.sim.recorder import SceneRecorder
+    recorder: Any
+    part_names: list[str]
 
+    def __init__(self, config: DatasetConfig, out_dir: Path, lock: DatasetLock) -> None:
         self.config = config
         self.out_dir = out_dir
         self.lock = lock
-        self.model = load_object(config.object, scale=config.object_scale)
-        self.field = field
+
+    def _recorder_options(self) -> dict[str, Any]:
+        """The recorder options every kind takes from the config."""
+        config = self.config
+        return {
+            "image_size": config.image_size,
+            "sensor": config.sensor,
+            "renderer": config.renderer,
+            "backgrounds": config.backgrounds,
+            "lighting": config.lighting,
+        }
+
+    def _open_recorder(self, make_recorder: Callable[[], Any]) -> None:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # an EGL fallback is refused just below
-            self.recorder = SceneRecorder(
-                self.model,
-                config.image_size,
-                sensor=config.sensor,
-                renderer=config.renderer,
-                backgrounds=config.backgrounds,
-                distractors=config.distractors,
-                lighting=config.lighting,
-            )
+            self.recorder = make_recorder()
         try:
-            _check_renderer_in_use(self.recorder.renderer, config.renderer)
+            _check_renderer_in_use(self.recorder.renderer, self.config.renderer)
         except DatasetError:
             self.recorder.close()
             raise
-        self.renderer = DescriptorRenderer(self.model.mesh, field.vertex_descriptors, field.background)
 
     def write_scene(self, scene_index: int) -> int:
         """Record scene ``scene_index`` into a temporary directory and rename it into place; returns the
@@ -466,14 +504,25 @@ class SceneWriter:
                 if tmp.exists():
                     shutil.rmtree(tmp, ignore_errors=True)
 
+    def _instances(self, scene: Any) -> list[dict[str, Any]]:
+        """``{"instance_id", "part", "T_world_object"}`` of every instance in the recorded ``scene``."""
+        raise NotImplementedError
+
+    def _frame_targets(self, scene: Any, instances: list[dict[str, Any]], frame: Any) -> dict[str, np.ndarray]:
+        """The images of one frame besides RGB and depth (``mask``, ``target_mask``, ``descriptor``...)."""
+        raise NotImplementedError
+
+    def _fusion_region(self, scene: Any) -> tuple[tuple[np.ndarray, np.ndarray], dict[str, Any]]:
+        """The TSDF volume's bounds (world, metres) and what :func:`~don_gym.fusion.fused_object_masks` keeps
+        (its region arguments)."""
+        raise NotImplementedError
+
     def _record(self, path: Path, scene_index: int) -> int:
         config = self.config
         seed = scene_seed(config.seed, scene_index)
         scene = self.recorder.record(seed=seed, num_frames=config.frames_per_scene)
-        intrinsics = scene.intrinsics
+        instances = self._instances(scene)
         for f, frame in enumerate(scene.frames):
-            T_camera_object = invert_transform(frame.T_world_camera_reported) @ scene.T_world_object
-            target = self.renderer.render(intrinsics, T_camera_object, visible_mask=frame.object_mask)
             write_frame(
                 path,
                 f,
@@ -481,26 +530,31 @@ class SceneWriter:
                     "rgb": frame.rgb,
                     "depth": frame.depth_m,
                     "depth_ideal": frame.depth_ideal_m,
-                    "mask": frame.object_mask,
-                    "target_mask": target.object_mask,
-                    "descriptor": target.descriptor_image,
+                    **self._frame_targets(scene, instances, frame),
                 },
                 config.descriptor_dim,
             )
         if config.fuse_depth:
             self._write_fused(path, scene)
+        primary = self.part_names[0]
+        first = next((i for i in instances if i["part"] == primary), instances[0] if instances else None)
         write_json(
             path / SCENE_FILE,
             {
                 "scene_index": scene_index,
                 "seed": seed,
-                "object": self.model.name,
-                "intrinsics": intrinsics.as_array(),
-                "T_world_object": scene.T_world_object,
-                "instances": [{"instance_id": 1, "part": self.model.name, "T_world_object": scene.T_world_object}],
+                "object": primary,
+                "intrinsics": scene.intrinsics.as_array(),
+                # For readers of one object: the first instance of the primary part.
+                "T_world_object": first["T_world_object"] if first is not None else np.eye(4),
+                "instances": instances,
                 # The truth (true camera poses), for pose evaluation and export; targets use the reported ones.
                 "T_camera_object": [
-                    {"1": invert_transform(fr.T_world_camera) @ scene.T_world_object} for fr in scene.frames
+                    {
+                        str(i["instance_id"]): invert_transform(fr.T_world_camera) @ i["T_world_object"]
+                        for i in instances
+                    }
+                    for fr in scene.frames
                 ],
                 "T_world_camera": np.stack([fr.T_world_camera for fr in scene.frames]),
                 "T_world_camera_reported": np.stack([fr.T_world_camera_reported for fr in scene.frames]),
@@ -511,30 +565,19 @@ class SceneWriter:
         )
         return len(scene.frames)
 
-    def _write_fused(self, path: Path, scene) -> None:
-        """TSDF-fuse the sensor depth around the object, re-render depth and masks per frame."""
+    def _write_fused(self, path: Path, scene: Any) -> None:
+        """TSDF-fuse the sensor depth in the kind's region, re-render depth and masks per frame."""
         reported = [fr.T_world_camera_reported for fr in scene.frames]
-        # A volume just around the object: the fused depth is only needed there (matches are
-        # sampled on the object), and a small volume keeps fusion cheap.
-        half = 0.5 * float(np.linalg.norm(self.model.extents_m)) + FUSION_MARGIN_M
-        centre = scene.T_world_object[:3, 3]
-        bounds_min = np.array([centre[0] - half, centre[1] - half, scene.table_height_m - 0.01])
-        bounds_max = np.array([centre[0] + half, centre[1] + half, scene.table_height_m + 2 * half])
+        bounds, region = self._fusion_region(scene)
         volume = fuse_scene(
             [fr.depth_m for fr in scene.frames],
             scene.intrinsics,
             reported,
-            (bounds_min, bounds_max),
+            bounds,
             voxel_size_m=self.config.voxel_size_m,
         )
-        object_radius = 0.5 * float(np.linalg.norm(self.model.extents_m)) + 0.005
         depths, masks = fused_object_masks(
-            volume,
-            scene.intrinsics,
-            reported,
-            object_center_world=centre,
-            object_radius_m=object_radius,
-            table_height_m=scene.table_height_m,
+            volume, scene.intrinsics, reported, table_height_m=scene.table_height_m, **region
         )
         for f, (depth, mask) in enumerate(zip(depths, masks, strict=True)):
             write_frame(path, f, {"depth_fused": depth, "mask_fused": mask}, self.config.descriptor_dim)
@@ -543,7 +586,51 @@ class SceneWriter:
         self.recorder.close()
 
 
-_WORKER: SceneWriter | None = None
+class SceneWriter(BaseSceneWriter):
+    """Records and writes scenes of one part.
+
+    One scene = the object at one pose on the table, seen by the wrist camera from ``frames_per_scene``
+    quasi-random poses. Per frame the targets are the simulator's object mask and the supervised descriptor
+    target (:class:`~don_gym.render.DescriptorRenderer`); the fused depth is fused around the object.
+    """
+
+    def __init__(self, config: DatasetConfig, out_dir: Path, field: DescriptorField, lock: DatasetLock) -> None:
+        from don_gym.sim.recorder import SceneRecorder
+
+        super().__init__(config, out_dir, lock)
+        self.model = load_object(config.object, scale=config.object_scale)
+        self.part_names = [self.model.name]
+        self.field = field
+        self._open_recorder(
+            lambda: SceneRecorder(self.model, distractors=config.distractors, **self._recorder_options())
+        )
+        self.renderer = DescriptorRenderer(self.model.mesh, field.vertex_descriptors, field.background)
+
+    def _instances(self, scene: Any) -> list[dict[str, Any]]:
+        return [{"instance_id": 1, "part": self.model.name, "T_world_object": scene.T_world_object}]
+
+    def _frame_targets(self, scene: Any, instances: list[dict[str, Any]], frame: Any) -> dict[str, np.ndarray]:
+        T_camera_object = invert_transform(frame.T_world_camera_reported) @ scene.T_world_object
+        target = self.renderer.render(scene.intrinsics, T_camera_object, visible_mask=frame.object_mask)
+        return {"mask": frame.object_mask, "target_mask": target.object_mask, "descriptor": target.descriptor_image}
+
+    def _fusion_region(self, scene: Any) -> tuple[tuple[np.ndarray, np.ndarray], dict[str, Any]]:
+        # A volume just around the object: the fused depth is only needed there (matches are
+        # sampled on the object), and a small volume keeps fusion cheap.
+        half = 0.5 * float(np.linalg.norm(self.model.extents_m)) + FUSION_MARGIN_M
+        centre = scene.T_world_object[:3, 3]
+        bounds_min = np.array([centre[0] - half, centre[1] - half, scene.table_height_m - 0.01])
+        bounds_max = np.array([centre[0] + half, centre[1] + half, scene.table_height_m + 2 * half])
+        object_radius = 0.5 * float(np.linalg.norm(self.model.extents_m)) + 0.005
+        return (bounds_min, bounds_max), {"object_center_world": centre, "object_radius_m": object_radius}
+
+
+def _open_scene_writer(config: DatasetConfig, out_dir: Path, lock: DatasetLock) -> SceneWriter:
+    """A worker's writer: the descriptor field read back from the dataset."""
+    return SceneWriter(config, out_dir, DescriptorField.load(out_dir / FIELD_FILE), lock)
+
+
+_WORKER: BaseSceneWriter | None = None
 _THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
@@ -576,7 +663,7 @@ def _children_ignore_ctrl_c() -> Iterator[None]:
         signal.signal(signal.SIGINT, previous)
 
 
-def _worker_init(config: DatasetConfig, out_dir: str, field_path: str) -> None:
+def _worker_init(open_writer: Callable[[Path, DatasetLock], BaseSceneWriter], out_dir: str) -> None:
     global _WORKER  # one writer per worker process, created once
     # Ctrl-C reaches every process of the terminal's process group; the parent stops the pool, and a
     # worker that took it too would print a traceback of its own.
@@ -584,7 +671,7 @@ def _worker_init(config: DatasetConfig, out_dir: str, field_path: str) -> None:
     lock = DatasetLock(Path(out_dir))
     # Joins the writers, so that an --overwrite never deletes under a worker that outlives its parent.
     lock.hold_session()
-    _WORKER = SceneWriter(config, Path(out_dir), DescriptorField.load(field_path), lock)
+    _WORKER = open_writer(Path(out_dir), lock)
 
 
 def _worker_write(scene_index: int) -> int:
@@ -610,8 +697,38 @@ def build_dataset(
     """
     out_dir = Path(out_dir)
     start = time.perf_counter()
-    shard_index, shard_count = _check_run_options(workers, shard)
+    shard = _check_run_options(workers, shard)
     _, field, lock = prepare_dataset_dir(out_dir, config, overwrite)
+    return write_scenes(
+        config,
+        out_dir,
+        lock,
+        lambda: SceneWriter(config, out_dir, field, lock),
+        functools.partial(_open_scene_writer, config),
+        workers=workers,
+        shard=shard,
+        progress=progress,
+        start=start,
+    )
+
+
+def write_scenes(
+    config: DatasetConfig,
+    out_dir: Path,
+    lock: DatasetLock,
+    open_writer: Callable[[], BaseSceneWriter],
+    open_worker_writer: Callable[[Path, DatasetLock], BaseSceneWriter],
+    workers: int,
+    shard: tuple[int, int],
+    progress: bool,
+    start: float,
+    desc: str = "build-dataset",
+) -> BuildReport:
+    """Write the shard's unfinished scenes of the prepared dataset in ``out_dir`` (its ``lock``, held shared;
+    closed here) by one writer, ``open_writer()``, or by ``workers`` processes, each with the writer
+    ``open_worker_writer(out_dir, its lock)`` (picklable: a module-level function, or a partial of one, that
+    reads what it needs back from the dataset). ``start``: the build's ``time.perf_counter()`` at its start."""
+    shard_index, shard_count = shard
     try:
         todo, skipped = [], 0
         for i in range(shard_index, config.scenes, shard_count):
@@ -620,12 +737,12 @@ def build_dataset(
             else:
                 todo.append(i)
         written, frames = 0, 0
-        bar = tqdm(total=len(todo) * config.frames_per_scene, unit="frame", desc="build-dataset", disable=not progress)
+        bar = tqdm(total=len(todo) * config.frames_per_scene, unit="frame", desc=desc, disable=not progress)
         try:
             if workers <= 1 or len(todo) <= 1:
-                results = _write_in_process(config, out_dir, field, lock, todo)
+                results = _write_in_process(open_writer, todo)
             else:
-                results = _write_in_workers(config, out_dir, min(workers, len(todo)), todo)
+                results = _write_in_workers(open_worker_writer, out_dir, min(workers, len(todo)), todo)
             with contextlib.closing(results):  # on an error, stop the workers before returning
                 for n in results:
                     written, frames, skipped = written + (n > 0), frames + n, skipped + (n == 0)
@@ -638,12 +755,10 @@ def build_dataset(
     return BuildReport(written, skipped, frames, time.perf_counter() - start, complete, config.scenes)
 
 
-def _write_in_process(
-    config: DatasetConfig, out_dir: Path, field: DescriptorField, lock: DatasetLock, todo: list[int]
-) -> Iterator[int]:
+def _write_in_process(open_writer: Callable[[], BaseSceneWriter], todo: list[int]) -> Iterator[int]:
     if not todo:
         return
-    writer = SceneWriter(config, out_dir, field, lock)
+    writer = open_writer()
     try:
         for i in todo:
             yield writer.write_scene(i)
@@ -651,12 +766,11 @@ def _write_in_process(
         writer.close()
 
 
-def _write_in_workers(config: DatasetConfig, out_dir: Path, workers: int, todo: list[int]) -> Iterator[int]:
+def _write_in_workers(
+    open_writer: Callable[[Path, DatasetLock], BaseSceneWriter], out_dir: Path, workers: int, todo: list[int]
+) -> Iterator[int]:
     pool = ProcessPoolExecutor(
-        workers,
-        mp_context=mp.get_context("spawn"),
-        initializer=_worker_init,
-        initargs=(config, str(out_dir), str(out_dir / FIELD_FILE)),
+        workers, mp_context=mp.get_context("spawn"), initializer=_worker_init, initargs=(open_writer, str(out_dir))
     )
     try:
         # Spawned workers start at the first submissions. One BLAS/OpenMP thread each: the workers already
