@@ -47,7 +47,7 @@ from _results import (  # noqa: E402
 )
 
 from don_gym import plotting  # noqa: E402
-from don_gym.build import DatasetConfig, build_dataset  # noqa: E402
+from don_gym.build import build_evaluation_datasets  # noqa: E402
 from don_gym.evaluation import (  # noqa: E402
     FRAMES_PER_SCENE,
     LONG_TAIL_RATIO,
@@ -185,20 +185,10 @@ def tracking(args: argparse.Namespace, work: Path) -> tuple[str, dict[str, dict[
         networks = object_networks(object_name)
         image_size = training_image_size({n: read_don_metadata(n).image_size for n in networks})
         sizes.append(f"{object_name} {image_size[0]}x{image_size[1]}")
-        datasets = []
         start = time.perf_counter()
-        for seed in seeds:
-            config = DatasetConfig(
-                object=object_name,
-                scenes=args.scenes,
-                frames_per_scene=args.frames,
-                image_size=image_size,
-                sensor="d435",
-                seed=seed,
-                fuse_depth=False,
-            )
-            datasets.append(work / f"{args.split}_{object_name}_{seed}")
-            build_dataset(config, datasets[-1], workers=args.workers)
+        datasets = build_evaluation_datasets(
+            object_name, seeds, work, args.split, args.scenes, args.frames, image_size, args.workers
+        )
         build_s = time.perf_counter() - start
         start = time.perf_counter()
         results = evaluate_tracking_depths(

@@ -35,7 +35,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import FIGURES, freeze_commit_description, record_section  # noqa: E402
 
-from don_gym.build import DatasetConfig, build_dataset  # noqa: E402
+from don_gym.build import build_evaluation_datasets  # noqa: E402
 from don_gym.evaluation import FRAMES_PER_SCENE, SCENES_PER_SEED, SPENT_SEEDS, SPLIT_SEEDS  # noqa: E402
 from don_gym.grasp_benchmark import (  # noqa: E402
     POSE_AGENT_PREFIX,
@@ -82,20 +82,10 @@ def run_object(args: argparse.Namespace, work: Path, object_name: str, publish: 
     the object's markdown."""
     networks = object_networks(object_name)
     image_size = training_image_size({n: read_don_metadata(n).image_size for n in networks})
-    datasets = []
     start = time.perf_counter()
-    for seed in args.seeds:
-        config = DatasetConfig(
-            object=object_name,
-            scenes=args.scenes,
-            frames_per_scene=args.frames,
-            image_size=image_size,
-            sensor="d435",
-            seed=seed,
-            fuse_depth=False,
-        )
-        datasets.append(work / f"{args.split}_{object_name}_{seed}")
-        build_dataset(config, datasets[-1], workers=args.workers)
+    datasets = build_evaluation_datasets(
+        object_name, args.seeds, work, args.split, args.scenes, args.frames, image_size, args.workers
+    )
     build_s = time.perf_counter() - start
     start = time.perf_counter()
     results = evaluate_pose(datasets, ["oracle", *networks], depths=DEPTHS, progress=not args.quick)

@@ -16,7 +16,7 @@ import signal
 import threading
 import time
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass
@@ -753,6 +753,35 @@ def write_scenes(
         lock.close()
     complete = sum(scene_is_complete(scene_dir(out_dir, i)) for i in range(config.scenes))
     return BuildReport(written, skipped, frames, time.perf_counter() - start, complete, config.scenes)
+
+
+def build_evaluation_datasets(
+    object_name: str,
+    seeds: Sequence[int],
+    out_root: Path,
+    split: str,
+    scenes: int,
+    frames_per_scene: int,
+    image_size: tuple[int, int],
+    workers: int = 1,
+) -> list[Path]:
+    """The evaluation datasets of one part, one per seed of a split (``out_root/<split>_<part>_<seed>``): D435
+    depth and no fused depth (evaluation reads the sensor and ideal depth only); built, or resumed where a
+    run stopped. The benchmarks' one way to make the data they evaluate on."""
+    datasets = []
+    for seed in seeds:
+        config = DatasetConfig(
+            object=object_name,
+            scenes=scenes,
+            frames_per_scene=frames_per_scene,
+            image_size=image_size,
+            sensor="d435",
+            seed=seed,
+            fuse_depth=False,
+        )
+        datasets.append(Path(out_root) / f"{split}_{object_name}_{seed}")
+        build_dataset(config, datasets[-1], workers=workers)
+    return datasets
 
 
 def _write_in_process(open_writer: Callable[[], BaseSceneWriter], todo: list[int]) -> Iterator[int]:
