@@ -6,7 +6,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -14,15 +14,14 @@ import numpy as np
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics
 from don_gym.objects import ObjectModel
-from don_gym.sim.backdrop import BACKDROP_SETS, Backdrop, check_backdrop_set
+from don_gym.sim.backdrop import Backdrop
 from don_gym.sim.bin_task import BIN_CENTER_XY_M, BIN_INNER_SIZE_M, BIN_WALL_HEIGHT_M, BinPickTask
 from don_gym.sim.bullet import Bullet
-from don_gym.sim.camera import check_lighting_mode, decode_segmentation, random_lighting
+from don_gym.sim.camera import decode_segmentation
 from don_gym.sim.distractors import Distractors
 from don_gym.sim.env import SOLVER_ITERATIONS, TIME_STEP_S
-from don_gym.sim.recorder import VARIETY_STREAM, SceneRecorder
+from don_gym.sim.recorder import SceneRecorder
 from don_gym.sim.robot import ARM_HOME_RAD, Panda
-from don_gym.sim.sensor import get_sensor, sample_calibration_error
 from don_gym.sim.task import TABLE_TOP_Z_M
 
 #: The camera looks at points around this height (m) above the bin's floor centre: about a pile's middle.
@@ -87,10 +86,7 @@ class BinSceneRecorder(SceneRecorder):
             raise DonGymError(f"parts={dict(counts)!r}: expected at least one instance in the bin")
         self.models = dict(models)
         self.model = self.models[present[0]]
-        self.sensor = get_sensor(sensor)
-        self.intrinsics = CameraIntrinsics.d435(*image_size)
-        self.backdrop_families = check_backdrop_set(backgrounds)
-        self.lighting_mode = check_lighting_mode(lighting)
+        self._set_camera_options(image_size, sensor, backgrounds, lighting)
         self.sim = Bullet(time_step_s=TIME_STEP_S, solver_iterations=SOLVER_ITERATIONS, renderer=renderer)
         self.robot = Panda(self.sim)
         self.task = BinPickTask(self.sim, self.models, counts, present[0])
@@ -118,40 +114,18 @@ class BinSceneRecorder(SceneRecorder):
         self, seed: int, num_frames: int, max_tries_per_frame: int = 20
     ) -> BinScene:
         """Record one pile; the same seed gives the same scene, pixel for pixel."""
-        if num_frames < 1:
-            raise DonGymError(f"num_frames must be >= 1, got {num_frames}")
-        rng = np.random.default_rng(seed)
-        self.robot.reset(ARM_HOME_RAD)
-        self.task.forget_contacts()
-        self.sim.restore_snapshot()
-        self.robot.reset(ARM_HOME_RAD)
-        background = self.backdrop.randomise(rng, BACKDROP_SETS["classic"])
+        rng, background = self._start_scene(seed, num_frames)
         self.task.drop_pile(rng)
-        variety_rng = np.random.default_rng([seed, VARIETY_STREAM])
-        if self.backdrop_families != BACKDROP_SETS["classic"]:
-            background.update(self.backdrop.randomise(variety_rng, self.backdrop_families))
-        lighting = random_lighting(variety_rng) if self.lighting_mode == "random" else None
-        if lighting is not None:
-            background["lighting"] = asdict(lighting)
+        _, lighting = self._vary_scene(seed, background)
         instances = [
             {"instance_id": i.instance_id + 1, "part": i.part, "T_world_object": i.body.T_world_object}
             for i in self.task.in_play()
         ]
         scene = BinScene(self.intrinsics, instances, TABLE_TOP_Z_M, background=background)
-        T_camera_reported = sample_calibration_error(self.sensor, rng)
         look_at = np.array([*BIN_CENTER_XY_M, TABLE_TOP_Z_M + LOOK_AT_HEIGHT_M])
         views = self._views(rng, look_at, num_frames, max_tries_per_frame, lighting, self._specular, "the bin")
-        for T_world_camera, rgb, depth, depth_ideal, segmentation in views:
-            scene.frames.append(
-                BinFrame(
-                    rgb=rgb,
-                    depth_m=depth,
-                    depth_ideal_m=depth_ideal,
-                    instance_ids=self.instance_image(segmentation),
-                    T_world_camera=T_world_camera,
-                    T_world_camera_reported=T_world_camera @ T_camera_reported,
-                )
-            )
+        for segmentation, frame in views:
+            scene.frames.append(BinFrame(instance_ids=self.instance_image(segmentation), **frame))
         self.robot.reset(ARM_HOME_RAD)
         return scene
 

@@ -108,11 +108,8 @@ class SceneRecorder:
         lighting: str = "fixed",
     ) -> None:
         self.model = model
-        self.sensor = get_sensor(sensor)
-        self.intrinsics = CameraIntrinsics.d435(*image_size)
         # Every option is checked before the PyBullet client exists: a refused recorder leaves nothing open.
-        self.backdrop_families = check_backdrop_set(backgrounds)
-        self.lighting_mode = check_lighting_mode(lighting)
+        self._set_camera_options(image_size, sensor, backgrounds, lighting)
         distractor_count = check_distractor_count(distractors)
         self.sim = Bullet(renderer=renderer)
         self.robot = Panda(self.sim)
@@ -120,6 +117,13 @@ class SceneRecorder:
         self.backdrop = Backdrop(self.sim, cradle_id=self.task.cradle_id)
         self.distractors = Distractors(self.sim, distractor_count)
         self.sim.take_snapshot()
+
+    def _set_camera_options(self, image_size: tuple[int, int], sensor: str, backgrounds: str, lighting: str) -> None:
+        """Check and keep the options of the camera and the scene's looks (no PyBullet needed)."""
+        self.sensor = get_sensor(sensor)
+        self.intrinsics = CameraIntrinsics.d435(*image_size)
+        self.backdrop_families = check_backdrop_set(backgrounds)
+        self.lighting_mode = check_lighting_mode(lighting)
 
     @property
     def renderer(self) -> str:
@@ -182,29 +186,14 @@ class SceneRecorder:
         ``T_world_object`` places the object exactly (no settling); otherwise a random
         lying pose is drawn from the seed and the object settles under gravity.
         """
-        if num_frames < 1:
-            raise DonGymError(f"num_frames must be >= 1, got {num_frames}")
-        rng = np.random.default_rng(seed)
-        # Back to the state after construction: bit-identical physics for the same seed,
-        # whatever was recorded before.
-        self.robot.reset(ARM_HOME_RAD)
-        self.task.forget_contacts()
-        self.sim.restore_snapshot()
-        self.robot.reset(ARM_HOME_RAD)
-        background = self.backdrop.randomise(rng, BACKDROP_SETS["classic"])
+        rng, background = self._start_scene(seed, num_frames)
         if T_world_object is None:
             self.task.place_part(*self.task.sample_pose(rng))
             self.task.settle()
         else:
             self.task.part.set_pose(np.asarray(T_world_object, dtype=np.float64))
         T_world_object = self.task.part.T_world_object
-        variety_rng = np.random.default_rng([seed, VARIETY_STREAM])
-        if self.backdrop_families != BACKDROP_SETS["classic"]:
-            # Over the classic backdrop, whose draws keep the main stream (and so the part's pose) as it was.
-            background.update(self.backdrop.randomise(variety_rng, self.backdrop_families))
-        lighting = random_lighting(variety_rng) if self.lighting_mode == "random" else None
-        if lighting is not None:
-            background["lighting"] = asdict(lighting)
+        variety_rng, lighting = self._vary_scene(seed, background)
         if self.distractors.count:
             # Clear of the part's bounding sphere about its origin too: the self-supervised targets' fused
             # object masks take everything within it for the part.
@@ -213,25 +202,39 @@ class SceneRecorder:
             part_radius_m = 0.5 * float(np.linalg.norm(self.model.extents_m)) + origin_offset_m + 0.005
             background["distractors"] = self.distractors.scatter(variety_rng, centre_m[:2], part_radius_m)
         scene = RecordedScene(self.intrinsics, T_world_object, TABLE_TOP_Z_M, background=background)
-        T_camera_reported = sample_calibration_error(self.sensor, rng)
         part_id = self.task.part.body_id
         views = self._views(
             rng, self.task.part.center_of_mass_world, num_frames, max_tries_per_frame, lighting,
             {part_id: self.model.material.specular}, "the object",
         )  # fmt: skip
-        for T_world_camera, rgb, depth, depth_ideal, segmentation in views:
-            scene.frames.append(
-                RecordedFrame(
-                    rgb=rgb,
-                    depth_m=depth,
-                    depth_ideal_m=depth_ideal,
-                    object_mask=body_mask(segmentation, part_id),
-                    T_world_camera=T_world_camera,
-                    T_world_camera_reported=T_world_camera @ T_camera_reported,
-                )
-            )
+        for segmentation, frame in views:
+            scene.frames.append(RecordedFrame(object_mask=body_mask(segmentation, part_id), **frame))
         self.robot.reset(ARM_HOME_RAD)
         return scene
+
+    def _start_scene(self, seed: int, num_frames: int) -> tuple[np.random.Generator, dict[str, Any]]:
+        """The scene's main random stream and, drawn from it, the classic backdrop, once the simulation is back to
+        its state after construction (bit-identical physics for the same seed, whatever was recorded before)."""
+        if num_frames < 1:
+            raise DonGymError(f"num_frames must be >= 1, got {num_frames}")
+        rng = np.random.default_rng(seed)
+        self.robot.reset(ARM_HOME_RAD)
+        self.task.forget_contacts()
+        self.sim.restore_snapshot()
+        self.robot.reset(ARM_HOME_RAD)
+        return rng, self.backdrop.randomise(rng, BACKDROP_SETS["classic"])
+
+    def _vary_scene(self, seed: int, background: dict[str, Any]) -> tuple[np.random.Generator, Any]:
+        """The scene's second random stream (for what the options add) and the lighting drawn from it (None:
+        fixed); the other backdrop families and the lighting are added to ``background``."""
+        variety_rng = np.random.default_rng([seed, VARIETY_STREAM])
+        if self.backdrop_families != BACKDROP_SETS["classic"]:
+            # Over the classic backdrop, whose draws keep the main stream (and so the part's pose) as it was.
+            background.update(self.backdrop.randomise(variety_rng, self.backdrop_families))
+        lighting = random_lighting(variety_rng) if self.lighting_mode == "random" else None
+        if lighting is not None:
+            background["lighting"] = asdict(lighting)
+        return variety_rng, lighting
 
     def _views(
         self,
@@ -242,10 +245,13 @@ class SceneRecorder:
         lighting: Any,
         specular_by_body: dict[int, float],
         what: str,
-    ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-        """``num_frames`` reachable wrist-camera views around ``look_at_world`` (3,), drawn from ``rng``:
-        ``(T_world_camera, rgb, sensor depth, ideal depth, segmentation)`` each (the trajectory of the class
-        docstring); ``what`` names the thing looked at in the refusal when too few poses are reachable."""
+    ) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
+        """``num_frames`` reachable wrist-camera views around ``look_at_world`` (3,), drawn from ``rng`` (the
+        trajectory of the class docstring, after the scene's hand-eye calibration error): ``(segmentation,
+        frame)`` each, ``frame`` the fields of a frame (``rgb``, ``depth_m``, ``depth_ideal_m``,
+        ``T_world_camera``, ``T_world_camera_reported``); ``what`` names the thing looked at in the refusal when
+        too few poses are reachable."""
+        T_camera_reported = sample_calibration_error(self.sensor, rng)
         halton = qmc.Halton(d=6, seed=rng)
         object_centre = np.asarray(look_at_world, dtype=np.float64)
         tries = found = 0
@@ -275,7 +281,16 @@ class SceneRecorder:
             specular = specular_map(segmentation, specular_by_body)
             depth = simulate_depth(depth_ideal, specular, self.intrinsics, self.sensor, rng)
             found += 1
-            yield T_world_camera, rgb, depth, depth_ideal, segmentation
+            yield (
+                segmentation,
+                {
+                    "rgb": rgb,
+                    "depth_m": depth,
+                    "depth_ideal_m": depth_ideal,
+                    "T_world_camera": T_world_camera,
+                    "T_world_camera_reported": T_world_camera @ T_camera_reported,
+                },
+            )
 
     def close(self) -> None:
         self.sim.close()
