@@ -43,6 +43,7 @@ from don_gym.descriptor_sources import (
     default_reference_descriptors,
     descriptor_field_for,
     load_descriptor_source,
+    reference_descriptors_for,
 )
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics, backproject_depth, transform_points
@@ -57,7 +58,7 @@ from don_gym.sim.bin_task import (
     lying_footprint_m,
     pregrasp_width_m,
 )
-from don_gym.sim.task import grasp_axial_position_m
+from don_gym.sim.task import TABLE_TOP_Z_M, grasp_axial_position_m
 
 #: An instance whose +axis is within 45 degrees of vertical stands on an end.
 STANDING_AXIS_Z = float(np.sqrt(0.5))
@@ -307,6 +308,14 @@ def _segment_depth_shares(
     return deep, near
 
 
+def _middle_distance(distances: np.ndarray, uv_a: np.ndarray, uv_b: np.ndarray) -> float:
+    """Smallest distance in a 5 x 5 window around the pixel halfway between two pixels."""
+    H, W = distances.shape
+    u, v = np.rint((np.asarray(uv_a) + np.asarray(uv_b)) / 2).astype(int)
+    window = distances[max(v - 2, 0) : min(v + 3, H), max(u - 2, 0) : min(u + 3, W)]
+    return float(window.min()) if window.size else np.inf
+
+
 def pair_ring_candidates(
     points_world: Sequence[np.ndarray],
     pixels: Sequence[np.ndarray],
@@ -314,13 +323,20 @@ def pair_ring_candidates(
     depth_m: np.ndarray,
     T_world_camera: np.ndarray,
     targets: AxisEndTargets,
+    middle_distances: np.ndarray | None = None,
+    middle_threshold: float = np.inf,
+    floor_z_m: float | None = None,
 ) -> list[InstanceEstimate]:
     """Instances from candidate ring matches: ``points_world[k]`` (M_k, 3) world points, ``pixels[k]`` (M_k, 2)
     and ``distances[k]`` (M_k,) of the minus-end (k = 0) and plus-end (k = 1) candidates. A pair is an instance
     when its axis points (:func:`~don_gym.agents.axis_grasp.surface_to_axis`) lie the rings' spacing apart
     (within :data:`PAIR_TOLERANCE_FRACTION`) and at most :data:`MAX_GAP_FRACTION` of the depth between their
-    pixels lies deeper than both; pairs are taken best first (spacing error, then descriptor distance), each
-    candidate in one instance at most."""
+    pixels lies deeper than both, and (given ``middle_distances`` (H, W), the descriptor distance to the ring halfway
+    between the two) the pixel halfway between them matches that ring within ``middle_threshold`` (two rings of one
+    part have the part between them, not another part); pairs are taken best first (spacing error, then descriptor
+    distance), each candidate in one instance at most. Given the bin floor's height ``floor_z_m`` (world z, m), both
+    axis points must lie at least half a ring radius above it: the rings of a thinner part (another part's surface
+    taken for this one's) put the axis into the floor."""
     camera = np.asarray(T_world_camera, dtype=np.float64)[:3, 3]
     depth = np.asarray(depth_m, dtype=np.float64)
     spacing = float(abs(targets.axial_positions_m[1] - targets.axial_positions_m[0]))
@@ -340,10 +356,18 @@ def pair_ring_candidates(
             error = abs(float(np.linalg.norm(axis_points[1] - axis_points[0])) - spacing)
             if error > tolerance:
                 continue
+            if floor_z_m is not None and float(axis_points[:, 2].min()) < floor_z_m + 0.5 * float(
+                np.min(targets.radii_m)
+            ):
+                continue
             gap, occluded = _segment_depth_shares(
                 depth, pixels[0][i], pixels[1][j], float(camera_z[0][i]), float(camera_z[1][j])
             )
             if gap > MAX_GAP_FRACTION:
+                continue
+            if middle_distances is not None and _middle_distance(middle_distances, pixels[0][i], pixels[1][j]) > (
+                middle_threshold
+            ):
                 continue
             score = error / tolerance + max(float(distances[0][i]), float(distances[1][j]))
             pairs.append((score, i, j, axis_points, occluded, max(float(distances[0][i]), float(distances[1][j]))))
@@ -488,11 +512,14 @@ class BinAxisGraspAgent(_BinAgentBase):
         if reference_frame is None and not source.reference_from_field:
             reference_frame = single_part_reference_frame(object_model, env)
         reference = default_reference_descriptors(source, targets, None, reference_frame)
+        # The ring halfway between the two: a pair of rings is one instance only with it between them.
+        middle = reference_descriptors_for(source, [middle_ring_points(object_model, targets)], reference_frame)[0]
         if not (np.isfinite(match_fraction) and 0.0 < match_fraction <= 1.0):
             raise DonGymError(f"match_fraction={match_fraction!r}: expected a fraction in (0, 1]")
         self._setup_geometry(object_model, targets)
         self.source = source
         self.reference_descriptors = np.asarray(reference, dtype=np.float32)
+        self.middle_descriptor = np.asarray(middle, dtype=np.float32)
         self.match_threshold = float(match_fraction) * float(
             np.linalg.norm(self.reference_descriptors[0] - self.reference_descriptors[1])
         )
@@ -522,10 +549,38 @@ class BinAxisGraspAgent(_BinAgentBase):
             points.append(transform_points(T_world_camera, points_camera[ok]) if ok.any() else np.zeros((0, 3)))
             pixels.append(uv[ok] if len(uv) else uv)
             match_distances.append(distance[ok] if len(uv) else distance)
-        return pair_ring_candidates(points, pixels, match_distances, depth, T_world_camera, self.targets)
+        middle = descriptor_distances(descriptor_image, self.middle_descriptor[None])[0]
+        return pair_ring_candidates(
+            points,
+            pixels,
+            match_distances,
+            depth,
+            T_world_camera,
+            self.targets,
+            middle,
+            self.match_threshold,
+            floor_z_m=TABLE_TOP_Z_M,
+        )
 
     def __repr__(self) -> str:
         return f"BinAxisGraspAgent(part={self.object_model.name!r}, method={self.method!r})"
+
+
+def middle_ring_points(object_model: ObjectModel, targets: AxisEndTargets, count: int = 16) -> np.ndarray:
+    """(count, 3) object-frame points of the part's outer surface halfway between the two rings of ``targets``: the
+    surface points nearest a circle of the rings' larger radius about the axis (a smooth stretch of the outer
+    surface has mesh vertices only at its ends, so a ring is not taken from the vertices here)."""
+    import trimesh
+
+    axis = np.asarray(object_model.plus_axis, dtype=np.float64)
+    helper = np.eye(3)[int(np.argmin(np.abs(axis)))]
+    e1 = np.cross(axis, helper)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    angles = np.linspace(0.0, 2 * np.pi, count, endpoint=False)
+    centre = object_model.center_of_mass + float(np.mean(targets.axial_positions_m)) * axis
+    circle = centre + float(np.max(targets.radii_m)) * (np.outer(np.cos(angles), e1) + np.outer(np.sin(angles), e2))
+    return np.asarray(trimesh.proximity.closest_point(object_model.mesh, circle)[0], dtype=np.float64)
 
 
 def single_part_reference_frame(object_model: ObjectModel, env: gym.Env) -> ReferenceFrame:
