@@ -15,7 +15,6 @@ import numpy as np
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics
 from don_gym.objects import ObjectModel, builtin_names, load_object, part_name
-from don_gym.sim.backdrop import BACKDROP_SETS, Backdrop
 from don_gym.sim.bin_task import (
     DEFAULT_PARTS,
     DEFAULT_TARGET,
@@ -24,25 +23,16 @@ from don_gym.sim.bin_task import (
     check_bin_parts,
     pregrasp_width_m,
 )
-from don_gym.sim.bullet import Bullet
-from don_gym.sim.camera import check_renderer, decode_segmentation, render_camera, specular_map
+from don_gym.sim.camera import decode_segmentation
 from don_gym.sim.env import (
-    BACKGROUNDS,
-    CONTROL_MODES,
     CONTROL_STEPS,
-    DEPTH_OBS_MAX_M,
-    FAR_M,
-    NEAR_M,
-    SOLVER_ITERATIONS,
-    TIME_STEP_S,
     PickPlaceEnv,
-    _as_size,
-    _check_choice,
+    _check_view_arguments,
     _is_int,
 )
 from don_gym.sim.robot import FINGER_JOINTS, Panda, wrap_angle
 from don_gym.sim.script import GraspPlaceScript
-from don_gym.sim.sensor import get_sensor, sample_calibration_error, simulate_depth
+from don_gym.sim.sensor import sample_calibration_error
 from don_gym.sim.task import OBSERVATION_YAW_RAD, observation_camera_position
 
 #: ``info["outcome"]`` of a step, worst first: nothing lifted; a target lifted but not placed in the cradle
@@ -196,21 +186,12 @@ class BinPickEnv(PickPlaceEnv):
         background: str = "plain",
     ):
         gym.Env.__init__(self)
-        _check_choice(control, "control", CONTROL_MODES)
-        _check_choice(reward_type, "reward_type", ("sparse",))
-        _check_choice(background, "background", tuple(BACKGROUNDS))
-        if render_mode is not None and not (isinstance(render_mode, str) and render_mode == "rgb_array"):
-            raise DonGymError(f"render_mode={render_mode!r} is unsupported; expected None or 'rgb_array'")
-        if not isinstance(observe_images, (bool, np.bool_)):
-            raise DonGymError(f"observe_images={observe_images!r}: expected True or False")
+        _check_view_arguments(control, reward_type, ("sparse",), background, render_mode, observe_images)
         if max_steps is not None and (not _is_int(max_steps) or max_steps < 1):
             raise DonGymError(f"max_steps={max_steps!r}: expected None or a positive integer number of steps")
         if not _is_int(max_failed_attempts) or max_failed_attempts < 1:
             raise DonGymError(f"max_failed_attempts={max_failed_attempts!r}: expected a positive integer")
-        image_size = _as_size(image_size, "image_size")
-        self.render_size = _as_size(render_size, "render_size", allow_none=False)
-        self.sensor = get_sensor(sensor)
-        check_renderer(renderer)
+        image_size = self._set_camera_options(image_size, render_size, sensor, renderer)
         self.models, self.counts, self.target = _resolve_parts(parts, target, part_scales)
         self.control = control
         self.reward_type = reward_type
@@ -223,8 +204,7 @@ class BinPickEnv(PickPlaceEnv):
         self.image_size = image_size if observe_images else None
         self.intrinsics = CameraIntrinsics.d435(*(self.image_size or (640, 480)))
 
-        self.sim = Bullet(time_step_s=TIME_STEP_S, solver_iterations=SOLVER_ITERATIONS, renderer=renderer)
-        self.renderer = self.sim.renderer
+        self._open_sim(renderer)
         self.task = BinPickTask(self.sim, self.models, self.counts, self.target)
         self.robot = Panda(self.sim)
         self.task.attach_gripper(self.robot.body_id, FINGER_JOINTS)
@@ -233,12 +213,7 @@ class BinPickEnv(PickPlaceEnv):
         self._pregrasp_width_m = pregrasp_width_m(self.model)
         self.observation_arm_rad = self.robot.solve_top_down_camera(observation_camera_position(), OBSERVATION_YAW_RAD)
         self.robot.reset(self.observation_arm_rad)
-        self.background = background
-        families = BACKDROP_SETS[BACKGROUNDS[background]] if BACKGROUNDS[background] else None
-        self._backdrop = Backdrop(self.sim, cradle_id=self.task.cradle_id) if families else None
-        self._backdrop_families = families
-        self._backdrop_rng: np.random.Generator | None = None
-        self._backdrop_settings: dict[str, Any] | None = None
+        self._set_up_backdrop(background)
         self.sim.take_snapshot()
 
         self.action_space = self._make_action_space()
@@ -256,18 +231,10 @@ class BinPickEnv(PickPlaceEnv):
         self._ee_yaw_rad = 0.0
 
     # ---------------------------------------------------------- observation
-    def _camera_images(self, T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        with self.robot.hidden(), self._quiet_renderer():
-            rgb, depth_ideal, segmentation = render_camera(
-                self.sim.client, self.intrinsics, T_world_camera, NEAR_M, FAR_M, self.renderer
-            )
+    def _keep_segmentation(self, segmentation: np.ndarray) -> None:
         body = decode_segmentation(segmentation)[0]
         known = (body >= 0) & (body < len(self._instance_of_body))
         self._segmentation = np.where(known, self._instance_of_body[np.clip(body, 0, None)], -1).astype(np.int32)
-        depth = simulate_depth(
-            depth_ideal, specular_map(segmentation, self._specular), self.intrinsics, self.sensor, self.np_random
-        )
-        return rgb, np.clip(depth, 0.0, DEPTH_OBS_MAX_M).astype(np.float32)
 
     def instance_segmentation(self) -> np.ndarray | None:
         """(H, W) int32: the instance id each pixel of the last wrist image shows, -1 for anything else
@@ -309,10 +276,7 @@ class BinPickEnv(PickPlaceEnv):
         if options is not None and (not isinstance(options, Mapping) or options):
             raise DonGymError(f"options={options!r}: the bin env takes no reset options; expected None or {{}}")
         gym.Env.reset(self, seed=None if seed is None else int(seed))
-        self.robot.reset(self.observation_arm_rad)
-        self.task.forget_contacts()
-        self.sim.restore_snapshot()
-        self.robot.reset(self.observation_arm_rad)
+        self._restore_snapshot()
         self.task.drop_pile(self.np_random)
         self._T_camera_reportedcamera = sample_calibration_error(self.sensor, self.np_random)
         self._episode_over = False

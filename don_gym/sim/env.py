@@ -86,6 +86,24 @@ def _check_choice(value: Any, what: str, choices: tuple[str, ...] | list[str]) -
         raise DonGymError(f"{what}={value!r} is unknown; expected one of {list(choices)}")
 
 
+def _check_view_arguments(
+    control: Any,
+    reward_type: Any,
+    reward_types: tuple[str, ...],
+    background: Any,
+    render_mode: Any,
+    observe_images: Any,
+) -> None:
+    """The arguments every pick env checks before anything is loaded, besides its parts and episode length."""
+    _check_choice(control, "control", CONTROL_MODES)
+    _check_choice(reward_type, "reward_type", reward_types)
+    _check_choice(background, "background", tuple(BACKGROUNDS))
+    if render_mode is not None and not (isinstance(render_mode, str) and render_mode == "rgb_array"):
+        raise DonGymError(f"render_mode={render_mode!r} is unsupported; expected None or 'rgb_array'")
+    if not isinstance(observe_images, (bool, np.bool_)):
+        raise DonGymError(f"observe_images={observe_images!r}: expected True or False")
+
+
 def _check_arguments(
     object: Any,  # noqa: A002 - the env's kwarg name
     object_scale: Any,
@@ -105,13 +123,7 @@ def _check_arguments(
     scale_ok = isinstance(object_scale, (int, float, np.integer, np.floating)) and not isinstance(object_scale, bool)
     if object_scale is not None and not (scale_ok and np.isfinite(object_scale) and object_scale > 0):
         raise DonGymError(f"object_scale={object_scale!r}: expected a positive, finite factor (mesh units to metres)")
-    _check_choice(control, "control", CONTROL_MODES)
-    _check_choice(reward_type, "reward_type", REWARD_TYPES)
-    _check_choice(background, "background", tuple(BACKGROUNDS))
-    if render_mode is not None and not (isinstance(render_mode, str) and render_mode == "rgb_array"):
-        raise DonGymError(f"render_mode={render_mode!r} is unsupported; expected None or 'rgb_array'")
-    if not isinstance(observe_images, (bool, np.bool_)):
-        raise DonGymError(f"observe_images={observe_images!r}: expected True or False")
+    _check_view_arguments(control, reward_type, REWARD_TYPES, background, render_mode, observe_images)
     if not _is_int(max_steps) or max_steps < 1:
         raise DonGymError(f"max_steps={max_steps!r}: expected a positive integer number of steps")
 
@@ -220,10 +232,7 @@ class PickPlaceEnv(gym.Env):
     ):
         super().__init__()
         _check_arguments(object, object_scale, control, observe_images, reward_type, render_mode, max_steps, background)
-        image_size = _as_size(image_size, "image_size")
-        self.render_size = _as_size(render_size, "render_size", allow_none=False)
-        self.sensor = get_sensor(sensor)
-        check_renderer(renderer)
+        image_size = self._set_camera_options(image_size, render_size, sensor, renderer)
         self.model: ObjectModel = load_object(object, scale=object_scale)
         self.control = control
         self.reward_type = reward_type
@@ -232,20 +241,14 @@ class PickPlaceEnv(gym.Env):
         self.image_size = image_size if observe_images else None
         self.intrinsics = CameraIntrinsics.d435(*(self.image_size or (640, 480)))
 
-        self.sim = Bullet(time_step_s=TIME_STEP_S, solver_iterations=SOLVER_ITERATIONS, renderer=renderer)
-        self.renderer = self.sim.renderer
+        self._open_sim(renderer)
         self.task = PickPlaceTask(self.sim, self.model)
+        self._specular = {self.task.part.body_id: self.model.material.specular}
         self.robot = Panda(self.sim)
         self.observation_arm_rad = self.robot.solve_top_down_camera(observation_camera_position(), OBSERVATION_YAW_RAD)
         self.robot.reset(self.observation_arm_rad)
         self.task.place_part(*FIXED_POSES[0])
-        self.background = background
-        # "plain" adds nothing to the scene: the same bodies, the same pixels as before the option existed.
-        families = BACKDROP_SETS[BACKGROUNDS[background]] if BACKGROUNDS[background] else None
-        self._backdrop = Backdrop(self.sim, cradle_id=self.task.cradle_id) if families else None
-        self._backdrop_families = families
-        self._backdrop_rng: np.random.Generator | None = None
-        self._backdrop_settings: dict[str, Any] | None = None
+        self._set_up_backdrop(background)
         self.sim.take_snapshot()
 
         self._grasp_point_object = grasp_point_object(self.model)
@@ -260,6 +263,29 @@ class PickPlaceEnv(gym.Env):
         self._ee_yaw_rad = 0.0
 
     # --------------------------------------------------------------- set-up
+    def _set_camera_options(
+        self, image_size: Any, render_size: Any, sensor: str, renderer: str
+    ) -> tuple[int, int] | None:
+        """Check and keep the render size and sensor, check the renderer; the wrist image size, checked."""
+        image_size = _as_size(image_size, "image_size")
+        self.render_size = _as_size(render_size, "render_size", allow_none=False)
+        self.sensor = get_sensor(sensor)
+        check_renderer(renderer)
+        return image_size
+
+    def _open_sim(self, renderer: str) -> None:
+        self.sim = Bullet(time_step_s=TIME_STEP_S, solver_iterations=SOLVER_ITERATIONS, renderer=renderer)
+        self.renderer = self.sim.renderer
+
+    def _set_up_backdrop(self, background: str) -> None:
+        self.background = background
+        # "plain" adds nothing to the scene: the same bodies, the same pixels as before the option existed.
+        families = BACKDROP_SETS[BACKGROUNDS[background]] if BACKGROUNDS[background] else None
+        self._backdrop = Backdrop(self.sim, cradle_id=self.task.cradle_id) if families else None
+        self._backdrop_families = families
+        self._backdrop_rng: np.random.Generator | None = None
+        self._backdrop_settings: dict[str, Any] | None = None
+
     @property
     def sensor_name(self) -> str:
         return self.sensor.name
@@ -297,9 +323,20 @@ class PickPlaceEnv(gym.Env):
             rgb, depth_ideal, segmentation = render_camera(
                 self.sim.client, self.intrinsics, T_world_camera, NEAR_M, FAR_M, self.renderer
             )
-        specular = specular_map(segmentation, {self.task.part.body_id: self.model.material.specular})
+        self._keep_segmentation(segmentation)
+        specular = specular_map(segmentation, self._specular)
         depth = simulate_depth(depth_ideal, specular, self.intrinsics, self.sensor, self.np_random)
         return rgb, np.clip(depth, 0.0, DEPTH_OBS_MAX_M).astype(np.float32)
+
+    def _keep_segmentation(self, segmentation: np.ndarray) -> None:
+        """What the env keeps of the last wrist image's PyBullet segmentation: nothing here."""
+
+    def _restore_snapshot(self) -> None:
+        """Back to the state after construction, the arm observing."""
+        self.robot.reset(self.observation_arm_rad)
+        self.task.forget_contacts()
+        self.sim.restore_snapshot()
+        self.robot.reset(self.observation_arm_rad)
 
     def _observation(self) -> dict[str, np.ndarray]:
         T_world_camera = self.robot.camera_pose()
@@ -352,10 +389,7 @@ class PickPlaceEnv(gym.Env):
         else:
             x, y, yaw = self.task.sample_pose(self.np_random)
             self._pose_id = None
-        self.robot.reset(self.observation_arm_rad)
-        self.task.forget_contacts()
-        self.sim.restore_snapshot()
-        self.robot.reset(self.observation_arm_rad)
+        self._restore_snapshot()
         self.task.place_part(x, y, yaw)
         self.task.settle()
         self._T_camera_reportedcamera = sample_calibration_error(self.sensor, self.np_random)
