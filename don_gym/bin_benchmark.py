@@ -8,8 +8,9 @@ optimal descriptors, any other method a descriptor source the agent loads for th
 a checkpoint of the part or of several parts including it). Every method picks from the same piles.
 
 Per method: clearance (piles cleared), picks per attempt (target instances placed in the cradle per attempt),
-wrong-part picks (instances of another part lifted, per lift) and flipped placements (target lifts by an axis grasp
-whose +axis pointed more than 90 degrees off the instance's, per such lift), each with its 95% Wilson interval.
+target lifts per attempt (target instances taken out of the bin, placed or not), wrong-part picks (instances of
+another part lifted, per lift) and flipped placements (target lifts by an axis grasp whose +axis pointed more than
+90 degrees off the instance's, per such lift), each with its 95% Wilson interval.
 
 A job array splits the piles (:func:`run_bin_benchmark` ``shard=(i, n)``: piles i, i+n, ...); every shard writes
 its episodes into the same folder (:func:`write_bin_shard`) and :func:`merge_bin_shards` makes the result of the
@@ -277,7 +278,8 @@ class BinBenchmarkResult:
         return [e for e in self.episodes if e["method"] == method]
 
     def rates(self, method: str) -> dict[str, tuple[int, int]]:
-        """``{name: (count, out of)}``: ``clearance`` (piles), ``picks_per_attempt``, ``wrong_part`` (per lift),
+        """``{name: (count, out of)}``: ``clearance`` (piles), ``picks_per_attempt`` (placed),
+        ``target_lifts_per_attempt`` (placed or not), ``wrong_part`` (per lift),
         ``flipped`` (per target lift by an axis grasp)."""
         episodes = self.select(method)
         counted = ("attempts", "picks", "grasp_only", "wrong_part_picks", "target_axis_lifts", "flipped")
@@ -286,6 +288,7 @@ class BinBenchmarkResult:
         return {
             "clearance": (sum(bool(e["cleared"]) for e in episodes), len(episodes)),
             "picks_per_attempt": (total["picks"], total["attempts"]),
+            "target_lifts_per_attempt": (total["picks"] + total["grasp_only"], total["attempts"]),
             "wrong_part": (total["wrong_part_picks"], lifts),
             "flipped": (total["flipped"], total["target_axis_lifts"]),
         }
@@ -410,6 +413,7 @@ def run_bin_benchmark(
 RATE_COLUMNS = (
     ("clearance", "piles cleared"),
     ("picks_per_attempt", "picks per attempt"),
+    ("target_lifts_per_attempt", "target lifts per attempt"),
     ("wrong_part", "wrong-part picks (per lift)"),
     ("flipped", "flipped placements (per axis-grasp lift)"),
 )

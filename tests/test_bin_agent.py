@@ -127,29 +127,35 @@ def _config(**kwargs):
 
 
 def test_benchmark_json_and_shards_merge_to_the_unsharded_run(tmp_path):
-    config = _config()
+    config = _config(piles=2)
     whole = run_bin_benchmark(config, workers=1, progress=False)
     paths = write_bin_outputs(whole, tmp_path / "whole")
     data = json.loads(paths["json"].read_text())
-    assert len(data["episodes"]) == 3
+    assert len(data["episodes"]) == 2
     for record in data["episodes"]:
         assert set(EPISODE_KEYS) <= set(record)
         assert isinstance(record["cleared"], bool) and record["method"] == "oracle"
         assert (
             record["picks"] + record["grasp_only"] + record["fails"] + record["wrong_part_picks"] == record["attempts"]
         )
-    assert [r["seed"] for r in data["episodes"]] == [1, 2, 3]
+    assert [r["seed"] for r in data["episodes"]] == [1, 2]
     summary = data["summary"]["results"]["oracle"]
-    assert summary["clearance"]["total"] == 3 and len(summary["clearance"]["interval_95"]) == 2
+    assert summary["clearance"]["total"] == 2 and len(summary["clearance"]["interval_95"]) == 2
     assert paths["chart"].stat().st_size > 0 and "piles cleared" in paths["table"].read_text()
+    # A job array: each shard through the CLI into one folder, then the merge; the same episodes as one run.
+    sharded = tmp_path / "sharded"
+    common = ["benchmark", "bin", "--methods", "oracle", "--parts", "toolcap:2,shaft:1", "--piles", "2", "--seed", "1",
+              "--image-size", "96x72", "--workers", "1", "--no-progress", "--out", str(sharded)]  # fmt: skip
     for index in range(2):
-        write_bin_shard(run_bin_benchmark(config, workers=1, progress=False, shard=(index, 2)), tmp_path / "sharded")
-    merged = merge_bin_shards(tmp_path / "sharded")
+        assert main([*common, "--shard", f"{index}/2"]) == 0
+    assert not (sharded / "bin_episodes.json").exists()
+    assert main(["benchmark", "bin", "--merge", "--out", str(sharded)]) == 0
+    merged = json.loads((sharded / "bin_episodes.json").read_text())
     drop = ("seconds",)
-    assert [{k: v for k, v in e.items() if k not in drop} for e in merged.episodes] == [
+    assert [{k: v for k, v in e.items() if k not in drop} for e in merged["episodes"]] == [
         {k: v for k, v in e.items() if k not in drop} for e in whole.episodes
     ]
-    assert merged.summary()["results"] == whole.summary()["results"]
+    assert merged["summary"]["results"] == whole.summary()["results"]
 
 
 def test_merge_refuses_missing_shards(tmp_path):
