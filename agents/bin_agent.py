@@ -10,7 +10,9 @@ of those instances with the same rule (:func:`rank_grasps`):
   descriptor distance below a threshold are candidate ring pixels (:func:`~don_gym.keypoints.local_matches`);
   a minus-end and a plus-end candidate make an instance when their axis points lie the part's ring spacing
   apart in 3D (with the observed depth) and the depth between them shows no gap (two rings of neighbouring
-  instances have the bin's floor or another part between them) (:func:`pair_ring_candidates`).
+  instances have the bin's floor or another part between them) (:func:`pair_ring_candidates`); a part standing
+  upright, whose rim both rings' descriptors match at one spot, is found from its top
+  (:func:`standing_from_coincident_rings`).
 - :class:`BinOracleAgent` takes the true poses of the target instances the wrist image shows (``info``).
 
 Grasps (:func:`grasp_candidates`): the axis grasp of :class:`~don_gym.agents.AxisGraspAgent` (fingers across
@@ -92,6 +94,11 @@ OCCLUDER_DEPTH_M = 0.012
 MAX_GAP_FRACTION = 0.2
 #: Most candidate pixels per ring kept (the best matches).
 MAX_CANDIDATES_PER_RING = 16
+#: Both rings' candidates within this (m) of each other mark the top of a part standing upright; its top's points
+#: lie within STANDING_TOP_M (m) of that height, its lower end within STANDING_FLOOR_M (m) of the floor.
+COINCIDENT_M = 0.008
+STANDING_TOP_M = 0.006
+STANDING_FLOOR_M = 0.005
 #: A standing part is also grasped this far (m) below its upper end.
 RIM_GRASP_DEPTH_M = 0.012
 #: Grasp kinds, the preferred first: across the axis (placeable), across a standing part, along the axis.
@@ -562,7 +569,9 @@ class BinAxisGraspAgent(_BinAgentBase):
             found = pair_ring_candidates(
                 points, pixels, match_distances, depth, T_world_camera, self.targets, floor_z_m=TABLE_TOP_Z_M
             )
-        return found
+        cloud = world_point_cloud(depth, intrinsics, T_world_camera)
+        standing = standing_from_coincident_rings(points, found, cloud, self.object_model, self.targets, TABLE_TOP_Z_M)
+        return [*found, *standing]
 
     def __repr__(self) -> str:
         return f"BinAxisGraspAgent(part={self.object_model.name!r}, method={self.method!r})"
@@ -583,6 +592,55 @@ def middle_ring_points(object_model: ObjectModel, targets: AxisEndTargets, count
     centre = object_model.center_of_mass + float(np.mean(targets.axial_positions_m)) * axis
     circle = centre + float(np.max(targets.radii_m)) * (np.outer(np.cos(angles), e1) + np.outer(np.sin(angles), e2))
     return np.asarray(trimesh.proximity.closest_point(object_model.mesh, circle)[0], dtype=np.float64)
+
+
+def standing_from_coincident_rings(
+    points_world: Sequence[np.ndarray],
+    estimates: Sequence[InstanceEstimate],
+    cloud_world: np.ndarray,
+    object_model: ObjectModel,
+    targets: AxisEndTargets,
+    floor_z_m: float,
+) -> list[InstanceEstimate]:
+    """Parts standing upright on the bin floor, which from above show their upper end and no ring side: there
+    both rings' descriptors match the rim at one spot. Each minus-end and plus-end candidate left unpaired by
+    ``estimates`` and within :data:`COINCIDENT_M` of each other is such a part's top when the observed points
+    around it at its height (``cloud_world`` (N, 3)) make a top whose centre, found by moving to the mean of those
+    within the part's radius (a few times), lies one part length above the floor (within
+    :data:`STANDING_FLOOR_M`). The estimate's axis is vertical through that centre, +axis up (the two ends are not
+    told apart: a grasp across a standing part does not need it)."""
+    length, diameter = lying_footprint_m(object_model)
+    axial = (np.asarray(object_model.mesh.vertices, dtype=np.float64) - object_model.center_of_mass) @ np.asarray(
+        object_model.plus_axis, dtype=np.float64
+    )
+    used = [{e.rings[k] for e in estimates if e.rings is not None} for k in range(2)]
+    minus, plus = (np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in points_world)
+    out: list[InstanceEstimate] = []
+    for i, a in enumerate(minus):
+        if i in used[0]:
+            continue
+        for j, b in enumerate(plus):
+            if j in used[1] or np.linalg.norm(a - b) > COINCIDENT_M:
+                continue
+            top = (a + b) / 2
+            centre = top[:2].copy()
+            near_top = np.abs(cloud_world[:, 2] - top[2]) < STANDING_TOP_M
+            for _ in range(4):
+                inside = near_top & (np.linalg.norm(cloud_world[:, :2] - centre, axis=1) < diameter / 2)
+                if not inside.any():
+                    break
+                centre = cloud_world[inside, :2].mean(axis=0)
+            if abs(float(top[2]) - length - floor_z_m) > STANDING_FLOOR_M:
+                continue
+            if any(np.linalg.norm(e.axis_points_world[0, :2] - centre) < diameter / 2 for e in out):
+                continue
+            heights = float(top[2]) - (axial.max() - np.asarray(targets.axial_positions_m, dtype=np.float64))
+            axis_points = np.array([[centre[0], centre[1], heights[0]], [centre[0], centre[1], heights[1]]])
+            out.append(InstanceEstimate(axis_points, match_distance=float(np.inf)))
+            used[0].add(i)
+            used[1].add(j)
+            break
+    return out
 
 
 def single_part_reference_frame(object_model: ObjectModel, env: gym.Env) -> ReferenceFrame:

@@ -104,7 +104,8 @@ def main() -> None:
         body = (
             f"Piles of 3 toolcaps + 2 shafts, target toolcap, sensor {SENSOR}, {split} piles "
             f"(seeds {config.seed}-{config.seed + piles - 1}); {len(result.episodes)} episodes in "
-            f"{result.seconds / 60:.0f} min on {result.workers} worker(s).\n\n"
+            + (f"{result.seconds:.0f} s" if result.seconds < 120 else f"{result.seconds / 60:.0f} min")
+            + f" on {result.workers} worker(s).\n\n"
             + table
             + "\n\nThe issue's targets:\n\n"
             + "\n".join(f"- {line}" for line in targets)

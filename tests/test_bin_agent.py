@@ -207,3 +207,25 @@ def test_a_network_of_several_parts_benchmarks_for_its_target(tmp_path):
     assert len(result.episodes) == 1 and set(EPISODE_KEYS) <= set(result.episodes[0])
     # A supervised network of several parts is held to the issue's picking targets.
     assert any("picks per attempt" in line for line in check_targets(result))
+
+
+def test_a_part_standing_upright_is_found_from_its_top():
+    from don_gym.agents.bin_agent import standing_from_coincident_rings
+    from don_gym.sim.bin_task import lying_footprint_m
+
+    toolcap = load_object("toolcap")
+    targets = axis_end_targets(toolcap)
+    length, diameter = lying_footprint_m(toolcap)
+    # The observed top of a toolcap standing on the floor (z = 0) with its axis at (0.10, 0.20): a disc of points,
+    # the floor around it; both rings' candidates coincide on its rim.
+    r, a = np.meshgrid(np.linspace(0, diameter / 2, 8), np.linspace(0, 2 * np.pi, 24))
+    disc = np.stack([0.10 + r.ravel() * np.cos(a.ravel()), 0.20 + r.ravel() * np.sin(a.ravel())], axis=1)
+    floor = np.stack(np.meshgrid(np.linspace(0.0, 0.2, 40), np.linspace(0.1, 0.3, 40)), axis=-1).reshape(-1, 2)
+    cloud = np.concatenate([np.c_[disc, np.full(len(disc), length)], np.c_[floor, np.zeros(len(floor))]])
+    rim = np.array([[0.10 + 0.8 * diameter / 2, 0.20, length]])
+    found = standing_from_coincident_rings([rim, rim + [0, 0.002, 0]], [], cloud, toolcap, targets, 0.0)
+    assert len(found) == 1 and found[0].standing
+    np.testing.assert_allclose(found[0].axis_points_world[:, :2], [[0.10, 0.20]] * 2, atol=0.003)
+    # The same top 6 mm lower is a part lying down (its top is its diameter high), not one standing.
+    lower = cloud - [0, 0, 0.006]
+    assert standing_from_coincident_rings([rim - [0, 0, 0.006]] * 2, [], lower, toolcap, targets, 0.0) == []
