@@ -222,7 +222,12 @@ def run_pile(env: Any, agent: Any, method: str, pile: int, seed: int) -> dict[st
 
 
 class PileRunner:
-    """Runs piles in one process: one env, one agent per method, built on first use."""
+    """Runs piles in one process: a fresh env per pile, one agent per method (built on first use).
+
+    A fresh env because a bin env that ran other piles before does not pick the same pile the same way: pile 26
+    after pile 25 diverged from pile 26 in a new env at its second step (same pile and first step, bit for bit),
+    so a result would depend on the piles run before it in the process, and a sharded run would differ from an
+    unsharded one."""
 
     def __init__(self, config: BinBenchmarkConfig, device: str = "cpu") -> None:
         self.config = config
@@ -231,8 +236,9 @@ class PileRunner:
         self._agents: dict[str, Any] = {}
 
     def run(self, method: str, pile: int) -> dict[str, Any]:
-        if self._env is None:
-            self._env = _make_env(self.config)
+        if self._env is not None:
+            self._env.close()
+        self._env = _make_env(self.config)
         if method not in self._agents:
             self._agents[method] = make_agent(self._env, method, self.device)
         return run_pile(self._env, self._agents[method], method, pile, pile_seed(self.config.seed, pile))
