@@ -94,9 +94,10 @@ OCCLUDER_DEPTH_M = 0.012
 MAX_GAP_FRACTION = 0.2
 #: Most candidate pixels per ring kept (the best matches).
 MAX_CANDIDATES_PER_RING = 16
-#: Both rings' candidates within this (m) of each other mark the top of a part standing upright; its top's points
+#: Both rings' candidates within this fraction of the part's radius of each other mark the top of a part standing
+#: upright (a network's matches spread over the rim, the optimal descriptors' coincide); its top's points
 #: lie within STANDING_TOP_M (m) of that height, its lower end within STANDING_FLOOR_M (m) of the floor.
-COINCIDENT_M = 0.008
+COINCIDENT_RADII = 1.0
 STANDING_TOP_M = 0.006
 STANDING_FLOOR_M = 0.005
 #: A standing part is also grasped this far (m) below its upper end.
@@ -604,9 +605,9 @@ def standing_from_coincident_rings(
 ) -> list[InstanceEstimate]:
     """Parts standing upright on the bin floor, which from above show their upper end and no ring side: there
     both rings' descriptors match the rim at one spot. Each minus-end and plus-end candidate left unpaired by
-    ``estimates`` and within :data:`COINCIDENT_M` of each other is such a part's top when the observed points
-    around it at its height (``cloud_world`` (N, 3)) make a top whose centre, found by moving to the mean of those
-    within the part's radius (a few times), lies one part length above the floor (within
+    ``estimates`` and within :data:`COINCIDENT_RADII` part radii of each other is such a part's top when the
+    observed points around it at its height (``cloud_world`` (N, 3)) make a top whose centre, found by moving to the
+    mean of those within the part's radius (a few times), lies one part length above the floor (within
     :data:`STANDING_FLOOR_M`). The estimate's axis is vertical through that centre, +axis up (the two ends are not
     told apart: a grasp across a standing part does not need it)."""
     length, diameter = lying_footprint_m(object_model)
@@ -620,10 +621,16 @@ def standing_from_coincident_rings(
         if i in used[0]:
             continue
         for j, b in enumerate(plus):
-            if j in used[1] or np.linalg.norm(a - b) > COINCIDENT_M:
+            if j in used[1] or np.linalg.norm(a - b) > COINCIDENT_RADII * diameter / 2:
                 continue
             top = (a + b) / 2
             centre = top[:2].copy()
+            # The matches may lie on the rim or, for a cup open upwards, on its floor inside: the top is the highest
+            # of what is seen around them.
+            around = np.linalg.norm(cloud_world[:, :2] - centre, axis=1) < diameter / 2
+            if not around.any():
+                continue
+            top[2] = float(np.percentile(cloud_world[around, 2], 95))
             near_top = np.abs(cloud_world[:, 2] - top[2]) < STANDING_TOP_M
             for _ in range(4):
                 inside = near_top & (np.linalg.norm(cloud_world[:, :2] - centre, axis=1) < diameter / 2)
