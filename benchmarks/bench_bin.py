@@ -7,7 +7,7 @@ picks per attempt, wrong-part picks and flipped placements, each with its 95% Wi
 test piles (from :data:`don_gym.evaluation.BIN_TEST_SEED`, used for no decision); ``--split dev`` runs the
 development piles (from :data:`~don_gym.evaluation.BIN_DEVELOPMENT_SEED`) into section ``bin-dev``. Records
 RESULTS.md section ``bin`` with the issue's targets checked: the oracle clears >= 95% of piles; a supervised network
-of several parts reaches >= 85% picks per attempt with wrong-part picks <= 2% (of lifts). The chart goes to
+of several parts reaches >= 85% picks per attempt with wrong-part picks <= 2% of picks. The chart goes to
 ``benchmarks/figures/bin_rates.png``; the raw outputs to ``--work``.
 
     python benchmarks/bench_bin.py --multi-part runs/bin/supervised-edge.safetensors   # test piles, section "bin"
