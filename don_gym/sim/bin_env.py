@@ -127,7 +127,9 @@ class BinPickEnv(PickPlaceEnv):
     roll, tilted up to 20 degrees, at a random spot inside the walls, above the instances dropped before it
     where their boxes overlap; then the pile settles under gravity (up to 3 s). A pile from which a part bounced
     out is drawn again. The same seed gives the same pile, bit for bit, and the same sensor noise and
-    calibration error. The wrist camera looks down from 0.45 m above the bin, the gripper open.
+    calibration error, and the same actions the same episode, whatever episodes the env ran before (each reset
+    after the first builds the physics world anew). The wrist camera looks down from 0.45 m above the bin, the
+    gripper open.
 
     ## Episode End
     Terminated when no target instance is left in play (``end_reason`` "cleared"), or in grasp mode after
@@ -163,7 +165,8 @@ class BinPickEnv(PickPlaceEnv):
       lying, highest; ``exclude=`` ids to try last, e.g. the one the last attempt failed on).
     - ``task.grasp_is_clear(instance)``: whether the fingers find room around an instance (walls, neighbours).
     - Attributes: ``target`` (part name), ``part_names`` (in instance-id order), ``models`` (part name ->
-      :class:`~don_gym.objects.ObjectModel`), ``task`` (:class:`~don_gym.sim.bin_task.BinPickTask`).
+      :class:`~don_gym.objects.ObjectModel`), ``task`` (:class:`~don_gym.sim.bin_task.BinPickTask`; a new one
+      each reset: look it up on the env).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 25}
@@ -204,31 +207,61 @@ class BinPickEnv(PickPlaceEnv):
         self.image_size = image_size if observe_images else None
         self.intrinsics = CameraIntrinsics.d435(*(self.image_size or (640, 480)))
 
-        self._open_sim(renderer)
-        self.task = BinPickTask(self.sim, self.models, self.counts, self.target)
-        self.robot = Panda(self.sim)
-        self.task.attach_gripper(self.robot.body_id, FINGER_JOINTS)
+        self._build_world(renderer, background)
         self.part_names = [instance.part for instance in self.task.instances]
         self.model = self.models[self.target]
         self._pregrasp_width_m = pregrasp_width_m(self.model)
-        self.observation_arm_rad = self.robot.solve_top_down_camera(observation_camera_position(), OBSERVATION_YAW_RAD)
-        self.robot.reset(self.observation_arm_rad)
-        self._set_up_backdrop(background)
-        self.sim.take_snapshot()
 
         self.action_space = self._make_action_space()
         self.observation_space = self._make_observation_space()
-        self._specular = {i.body.body_id: i.model.material.specular for i in self.task.instances}
-        # PyBullet body id -> instance id (-1: not an instance), for the segmentation.
-        self._instance_of_body = np.full(self.sim.client.getNumBodies() + 1, -1, dtype=np.int32)
-        for instance in self.task.instances:
-            self._instance_of_body[instance.body.body_id] = instance.instance_id
         self._segmentation: np.ndarray | None = None
         self._T_camera_reportedcamera = np.eye(4)
         self._episode_over = True
         self._steps = 0
         self._failed_in_a_row = 0
         self._ee_yaw_rad = 0.0
+
+    # ------------------------------------------------------------- the world
+    def _build_world(self, renderer: str, background: str) -> None:
+        """A new physics world as every episode starts from: client, table, cradle, bin, the instances on the
+        shelf, the robot observing, the backdrop; its snapshot taken."""
+        self._open_sim(renderer)
+        known = getattr(self, "task", None)  # when rebuilding: the grasp points of the same parts, slow to compute
+        self.task = BinPickTask(
+            self.sim,
+            self.models,
+            self.counts,
+            self.target,
+            grasp_points_object=None if known is None else known.grasp_points_object,
+        )
+        self.robot = Panda(self.sim)
+        self.task.attach_gripper(self.robot.body_id, FINGER_JOINTS)
+        self.observation_arm_rad = self.robot.solve_top_down_camera(observation_camera_position(), OBSERVATION_YAW_RAD)
+        self.robot.reset(self.observation_arm_rad)
+        self._set_up_backdrop(background)
+        self.sim.take_snapshot()
+        self._specular = {i.body.body_id: i.model.material.specular for i in self.task.instances}
+        # PyBullet body id -> instance id (-1: not an instance), for the segmentation.
+        self._instance_of_body = np.full(self.sim.client.getNumBodies() + 1, -1, dtype=np.int32)
+        for instance in self.task.instances:
+            self._instance_of_body[instance.body.body_id] = instance.instance_id
+        #: Whether an episode has run in this world since it was built.
+        self._world_used = False
+
+    def _rebuild_world(self) -> None:
+        """Replace a world an episode ran in by a new one. Restoring the snapshot is not enough here: Bullet's
+        collision detection keeps state that ``restoreState`` does not restore and no call resets (the
+        broadphase's pair cache, which drops pairs that stopped overlapping a few per step, its trees, the
+        order of the contact manifolds, hence of the solver's contact rows). With a pile's many contacts that
+        state differs after different episodes, and so did the picks: a pile replayed after another one
+        diverged from the same pile in a new env at its second pick. A new world makes ``reset(seed=s)`` the
+        same episode whatever ran before (about 0.1 s more a reset)."""
+        backdrop_rng = self._backdrop_rng  # an unseeded backdrop stream goes on where it was
+        self.sim.close()
+        if self._backdrop is not None:
+            self._backdrop.close()
+        self._build_world(self.renderer, self.background)
+        self._backdrop_rng = backdrop_rng
 
     # ---------------------------------------------------------- observation
     def _keep_segmentation(self, segmentation: np.ndarray) -> None:
@@ -276,6 +309,9 @@ class BinPickEnv(PickPlaceEnv):
         if options is not None and (not isinstance(options, Mapping) or options):
             raise DonGymError(f"options={options!r}: the bin env takes no reset options; expected None or {{}}")
         gym.Env.reset(self, seed=None if seed is None else int(seed))
+        if self._world_used:
+            self._rebuild_world()
+        self._world_used = True
         self._restore_snapshot()
         self.task.drop_pile(self.np_random)
         self._T_camera_reportedcamera = sample_calibration_error(self.sensor, self.np_random)

@@ -164,9 +164,18 @@ class BinPickTask(PickPlaceTask):
         models: part name -> model, in instance order.
         counts: part name -> number of instances (>= 0).
         target: the part name to pick.
+        grasp_points_object: part name -> :func:`~don_gym.sim.task.grasp_point_object` of its model, as
+            :attr:`grasp_points_object` of a task of the same models (None: computed, which takes a while).
     """
 
-    def __init__(self, sim: Bullet, models: Mapping[str, ObjectModel], counts: Mapping[str, int], target: str):
+    def __init__(
+        self,
+        sim: Bullet,
+        models: Mapping[str, ObjectModel],
+        counts: Mapping[str, int],
+        target: str,
+        grasp_points_object: Mapping[str, np.ndarray] | None = None,
+    ):
         self.sim = sim
         self.models = dict(models)
         self.target = target
@@ -181,8 +190,11 @@ class BinPickTask(PickPlaceTask):
                 body = PartBody.create(sim, model, name=f"instance{index}")
                 self.instances.append(Instance(index, name, body))
         self._by_body = {instance.body.body_id: instance for instance in self.instances}
-        # grasp_point_object cuts the mesh into sections: once per part, not per query.
-        self._grasp_point_object = {name: grasp_point_object(model) for name, model in self.models.items()}
+        # grasp_point_object cuts the mesh into sections: once per part, not per query (nor per world).
+        if grasp_points_object is None:
+            grasp_points_object = {name: grasp_point_object(model) for name, model in self.models.items()}
+        #: Part name -> (3,) object-frame grasp point (:func:`~don_gym.sim.task.grasp_point_object`), metres.
+        self.grasp_points_object = {name: np.asarray(grasp_points_object[name]) for name in self.models}
         self._hull_vertices = {name: np.asarray(m.mesh.convex_hull.vertices) for name, m in self.models.items()}
         self._focus = next(i for i in self.instances if i.part == target)
         self._gripper: tuple[int, tuple[int, int]] | None = None
@@ -266,7 +278,7 @@ class BinPickTask(PickPlaceTask):
     def grasp_point_world(self, instance: Instance) -> np.ndarray:
         """(3,) world point of :func:`~don_gym.sim.task.grasp_point_object` of an instance."""
         T = instance.body.T_world_object
-        return T[:3, :3] @ self._grasp_point_object[instance.part] + T[:3, 3]
+        return T[:3, :3] @ self.grasp_points_object[instance.part] + T[:3, 3]
 
     def nearest_instance(self, point_world: np.ndarray, part: str | None = None) -> Instance | None:
         """The instance in play (of ``part``, default any) whose axis segment passes closest to a world point."""
