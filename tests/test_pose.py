@@ -298,6 +298,9 @@ def test_cli_pose_writes_bop_results_bop_reads(pose_dataset, tmp_path, capsys):
     summary = __import__("json").loads((out / "pose.json").read_text())
     assert summary["methods"]["oracle"]["mssd_thresholds"][0] == pytest.approx(0.05)
     assert (out / "pose_recall.png").stat().st_size > 0
+    # --pose adds the pose figures to the tracking evaluation, which runs as without it.
+    tracked = __import__("json").loads((out / "tracking.json").read_text())
+    assert "oracle" in tracked["methods"] and "3D error p50 (mm)" in printed
     from don_gym.pose_evaluation import method_file_name
 
     assert method_file_name("toolcap/supervised-edge") == "toolcap-supervised-edge"

@@ -36,13 +36,14 @@ examples (3101 3102 3103: the development seeds):
   don-gym evaluate --data data/dev_toolcap_3101 --models oracle toolcap/supervised-edge run/model.safetensors \\
       --points 20 --depth sensor --out eval/toolcap_sensor
 
-with --pose, 6D pose estimation from the descriptors instead (docs: don_gym.pose, don_gym.pose_evaluation):
+with --pose, 6D pose estimation from the descriptors as well, after tracking (docs: don_gym.pose,
+don_gym.pose_evaluation):
   don-gym evaluate --data data/dev_toolcap_3101 --pose --pose-depth sensor --out eval/toolcap_pose
 writes OUT/pose.json (per method BOP's MSSD and MSPD recalls over their thresholds, AR_MSSD, AR_MSPD, their
 mean AR (no VSD), the share with ADD-S below 10% of the diameter, time per image), OUT/pose.md,
 OUT/pose_<method>.csv (BOP results files, '/' in method names as '-') and OUT/pose_recall.png.
 
-without --pose, writes OUT/tracking.json (percentiles 50/90/99 of each metric with their intervals, tails, far matches
+always writes OUT/tracking.json (percentiles 50/90/99 of each metric with their intervals, tails, far matches
 by category and per scene, counts per method), OUT/tracking.md (the tables printed),
 OUT/tracking_histogram.png (stacked, normalised, log-scale histogram of the 3D error, as in the
 paper), OUT/tracking_cdf.png (CDFs of every metric, log x) and OUT/tracking_worst_matches.png (the
@@ -109,7 +110,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--pose",
         action="store_true",
-        help="evaluate 6D pose estimation from the descriptors instead of tracking (BOP's MSSD/MSPD recalls, AR, "
+        help="evaluate 6D pose estimation from the descriptors as well as tracking (BOP's MSSD/MSPD recalls, AR, "
         "ADD-S): writes OUT/pose.json, OUT/pose.md, OUT/pose_<method>.csv (BOP results files) and OUT/pose_recall.png",
     )
     parser.add_argument(
@@ -134,14 +135,7 @@ def run(args: argparse.Namespace) -> int:
 
     from don_gym.dataset import DONDataset
     from don_gym.errors import DonGymError
-    from don_gym.evaluation import (
-        TrackingConfig,
-        dataset_object,
-        evaluate_tracking,
-        seed_split,
-        tracking_report,
-        write_tracking_outputs,
-    )
+    from don_gym.evaluation import TrackingConfig, dataset_object
     from don_gym.io import check_output_dir
     from don_gym.model import torch_device
 
@@ -164,11 +158,27 @@ def run(args: argparse.Namespace) -> int:
     )
     config.validate()
     datasets = [DONDataset(path) for path in args.data]
-    if datasets[0].scene_kind == "bin" and not args.pose:
-        return run_bins(args, datasets, config)
-    models = args.models if args.models is not None else default_models(dataset_object(datasets[0]))
+    if datasets[0].scene_kind == "bin":
+        run_bins(args, datasets, config)
+    else:
+        run_tracking(args, datasets, config)
     if args.pose:
+        models = args.models if args.models is not None else default_models(dataset_object(datasets[0]))
         return run_pose(args, datasets, models)
+    return 0
+
+
+def run_tracking(args: argparse.Namespace, datasets: list, config) -> int:
+    """Datasets of one part: the tracking protocol, printed and written to ``--out``."""
+    from don_gym.evaluation import (
+        dataset_object,
+        evaluate_tracking,
+        seed_split,
+        tracking_report,
+        write_tracking_outputs,
+    )
+
+    models = args.models if args.models is not None else default_models(dataset_object(datasets[0]))
     result = evaluate_tracking(
         datasets, models, config, progress=not args.no_progress, device=args.device, batch_size=args.batch_size
     )
