@@ -8,6 +8,7 @@ import shutil
 import struct
 from pathlib import Path
 
+import bop_scenes
 import numpy as np
 import pytest
 
@@ -18,7 +19,6 @@ from don_gym.descriptors import DescriptorField
 from don_gym.errors import DatasetError, MeshError
 from don_gym.geometry import CameraIntrinsics, backproject_depth, invert_transform, transform_points
 from don_gym.render import DescriptorRenderer
-from tests import bop_scenes
 
 
 @pytest.fixture(scope="module")
