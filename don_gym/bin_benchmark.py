@@ -20,7 +20,6 @@ whole run from them, the same as an unsharded run's.
 from __future__ import annotations
 
 import json
-import multiprocessing as mp
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
@@ -28,9 +27,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from don_gym.errors import DonGymError
+from don_gym.grasp_benchmark import run_tasks
 
 #: Method names the benchmark resolves itself; anything else is a descriptor source of the target part.
 ORACLE_METHOD = "oracle"
@@ -222,12 +221,11 @@ def run_pile(env: Any, agent: Any, method: str, pile: int, seed: int) -> dict[st
 
 
 class PileRunner:
-    """Runs piles in one process: a fresh env per pile, one agent per method (built on first use).
+    """Runs piles in one process: one env, one agent per method (built on first use).
 
-    A fresh env because a bin env that ran other piles before does not pick the same pile the same way: pile 26
-    after pile 25 diverged from pile 26 in a new env at its second step (same pile and first step, bit for bit),
-    so a result would depend on the piles run before it in the process, and a sharded run would differ from an
-    unsharded one."""
+    The env is reused: ``BinPickEnv.reset(seed)`` gives the same episode whatever ran before in it (it rebuilds
+    its physics world), so a result does not depend on the piles run before it in the process and a sharded
+    run equals an unsharded one (tests/test_bin_agent.py)."""
 
     def __init__(self, config: BinBenchmarkConfig, device: str = "cpu") -> None:
         self.config = config
@@ -235,10 +233,11 @@ class PileRunner:
         self._env: Any = None
         self._agents: dict[str, Any] = {}
 
-    def run(self, method: str, pile: int) -> dict[str, Any]:
-        if self._env is not None:
-            self._env.close()
-        self._env = _make_env(self.config)
+    def run(self, task: tuple[str, int]) -> dict[str, Any]:
+        """One ``(method, pile)`` task's episode record."""
+        method, pile = task
+        if self._env is None:
+            self._env = _make_env(self.config)
         if method not in self._agents:
             self._agents[method] = make_agent(self._env, method, self.device)
         return run_pile(self._env, self._agents[method], method, pile, pile_seed(self.config.seed, pile))
@@ -247,26 +246,6 @@ class PileRunner:
         if self._env is not None:
             self._env.close()
         self._env, self._agents = None, {}
-
-
-_RUNNER: PileRunner | None = None
-
-
-def _worker_init(config: BinBenchmarkConfig, device: str) -> None:
-    global _RUNNER  # one runner per worker process, kept for all its piles
-    import signal
-
-    import torch
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    torch.set_num_threads(1)
-    _RUNNER = PileRunner(config, device)
-
-
-def _worker_run(indexed: tuple[int, tuple[str, int]]) -> tuple[int, dict[str, Any]]:
-    assert _RUNNER is not None
-    index, (method, pile) = indexed
-    return index, _RUNNER.run(method, pile)
 
 
 @dataclass
@@ -384,33 +363,10 @@ def run_bin_benchmark(
 
         sizes = {m: tuple(i["image_size"]) for m, i in method_info.items() if "image_size" in i}
         config = replace(config, image_size=training_image_size(sizes) if sizes else DEFAULT_IMAGE_SIZE)
-    tasks = _shard_tasks(config, shard)
-    records: list[dict[str, Any] | None] = [None] * len(tasks)
     start = time.perf_counter()
-    workers = max(1, min(workers, len(tasks)))
-    with tqdm(total=len(tasks), unit="pile", desc="bin benchmark", disable=not progress) as bar:
-        if workers == 1:
-            runner = PileRunner(config, device)
-            try:
-                for index, (method, pile) in enumerate(tasks):
-                    records[index] = runner.run(method, pile)
-                    bar.update(1)
-            finally:
-                runner.close()
-        else:
-            from don_gym.build import single_threaded_children
-
-            context = mp.get_context("spawn")
-            with (
-                single_threaded_children(),
-                context.Pool(workers, initializer=_worker_init, initargs=(config, device)) as pool,
-            ):
-                for index, record in pool.imap_unordered(_worker_run, list(enumerate(tasks))):
-                    records[index] = record
-                    bar.update(1)
-                pool.close()
-                pool.join()
-    episodes = [r for r in records if r is not None]
+    episodes, workers = run_tasks(
+        PileRunner, config, device, _shard_tasks(config, shard), workers, progress, "pile", "bin benchmark"
+    )
     return BinBenchmarkResult(config, episodes, time.perf_counter() - start, workers, method_info, shard)
 
 

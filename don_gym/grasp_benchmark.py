@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import multiprocessing as mp
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -315,11 +316,11 @@ class EpisodeRunner:
         self._agents.clear()
 
 
-_RUNNER: EpisodeRunner | None = None
+_RUNNER: Any = None
 
 
-def _worker_init(config: GraspBenchmarkConfig, device: str = "cpu") -> None:
-    global _RUNNER  # one runner per worker process, kept for all its episodes
+def _worker_init(runner_type: type, config: Any, device: str) -> None:
+    global _RUNNER  # one runner per worker process, kept for all its tasks
     import signal
 
     import torch
@@ -329,13 +330,53 @@ def _worker_init(config: GraspBenchmarkConfig, device: str = "cpu") -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # The workers already fill the cores; more threads per worker only contend.
     torch.set_num_threads(1)
-    _RUNNER = EpisodeRunner(config, device)
+    _RUNNER = runner_type(config, device)
 
 
-def _worker_run(indexed: tuple[int, EpisodeTask]) -> tuple[int, dict[str, Any]]:
+def _worker_run(indexed: tuple[int, Any]) -> tuple[int, dict[str, Any]]:
     assert _RUNNER is not None
     index, task = indexed
     return index, _RUNNER.run(task)
+
+
+def run_tasks(
+    runner_type: type,
+    config: Any,
+    device: str,
+    tasks: Sequence[Any],
+    workers: int,
+    progress: bool,
+    unit: str,
+    desc: str,
+) -> tuple[list[dict[str, Any]], int]:
+    """Every task's record, in task order, and the number of processes used: ``runner_type(config, device)``
+    (a runner with ``run(task) -> dict`` and ``close()``) in this process for ``workers`` 1, else one runner
+    in each of ``workers`` spawned processes (at most one per task). The grasp and bin benchmarks share it."""
+    records: list[dict[str, Any] | None] = [None] * len(tasks)
+    workers = max(1, min(workers, len(tasks)))
+    with tqdm(total=len(tasks), unit=unit, desc=desc, disable=not progress) as bar:
+        if workers == 1:
+            runner = runner_type(config, device)
+            try:
+                for index, task in enumerate(tasks):
+                    records[index] = runner.run(task)
+                    bar.update(1)
+            finally:
+                runner.close()
+        else:
+            from don_gym.build import single_threaded_children
+
+            context = mp.get_context("spawn")
+            with (
+                single_threaded_children(),
+                context.Pool(workers, initializer=_worker_init, initargs=(runner_type, config, device)) as pool,
+            ):
+                for index, record in pool.imap_unordered(_worker_run, list(enumerate(tasks))):
+                    records[index] = record
+                    bar.update(1)
+                pool.close()  # clean shutdown: leaving the with-block terminates (leaked-semaphore warning)
+                pool.join()
+    return [r for r in records if r is not None], workers
 
 
 @dataclass
@@ -459,33 +500,10 @@ def run_grasp_benchmark(
             trained_sizes[method] = tuple(metadata.image_size)
     if config.image_size is None:
         config = replace(config, image_size=training_image_size(trained_sizes))
-    tasks = episode_tasks(config)
-    records: list[dict[str, Any] | None] = [None] * len(tasks)
     start = time.perf_counter()
-    workers = min(workers, len(tasks))
-    with tqdm(total=len(tasks), unit="episode", desc="grasp benchmark", disable=not progress) as bar:
-        if workers == 1:
-            runner = EpisodeRunner(config, device)
-            try:
-                for index, task in enumerate(tasks):
-                    records[index] = runner.run(task)
-                    bar.update(1)
-            finally:
-                runner.close()
-        else:
-            from don_gym.build import single_threaded_children
-
-            context = mp.get_context("spawn")
-            with (
-                single_threaded_children(),
-                context.Pool(workers, initializer=_worker_init, initargs=(config, device)) as pool,
-            ):
-                for index, record in pool.imap_unordered(_worker_run, list(enumerate(tasks))):
-                    records[index] = record
-                    bar.update(1)
-                pool.close()  # clean shutdown: leaving the with-block terminates (leaked-semaphore warning)
-                pool.join()
-    episodes = [r for r in records if r is not None]
+    episodes, workers = run_tasks(
+        EpisodeRunner, config, device, episode_tasks(config), workers, progress, "episode", "grasp benchmark"
+    )
     return GraspBenchmarkResult(config, episodes, time.perf_counter() - start, workers, method_info)
 
 
