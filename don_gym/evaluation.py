@@ -429,6 +429,20 @@ def dataset_object(dataset: DONDataset) -> ObjectModel:
     return dataset.object_model()
 
 
+def pooled_object(datasets: Sequence[DONDataset]) -> ObjectModel:
+    """The one part that pooled datasets show (:func:`dataset_object` of the first); datasets of different parts
+    are a :class:`DonGymError` naming both and how their shapes differ."""
+    model = dataset_object(datasets[0])
+    for other in datasets[1:]:
+        differences = model.shape_signature.differences(dataset_object(other).shape_signature)
+        if differences:
+            raise DonGymError(
+                f"datasets {datasets[0].root} and {other.root} show different parts ({'; '.join(differences)}); "
+                "pool only datasets of one part"
+            )
+    return model
+
+
 def frame_observation(dataset: DONDataset, scene: int, frame: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """A dataset frame as an env observation and info, for :class:`don_gym.descriptor_sources.DescriptorSource`:
     ``rgb``, ``depth`` (the *ideal* depth, so the oracle's occlusion test is exact) and
@@ -787,14 +801,7 @@ def evaluate_tracking_depths(
     else:
         if part is not None:
             raise DonGymError(f"part={part!r}: only datasets of bins hold several parts; these hold one")
-        model = dataset_object(datasets[0])
-        for other in datasets[1:]:
-            differences = model.shape_signature.differences(dataset_object(other).shape_signature)
-            if differences:
-                raise DonGymError(
-                    f"datasets {datasets[0].root} and {other.root} show different parts ({'; '.join(differences)}); "
-                    "pool only datasets of one part"
-                )
+        model = pooled_object(datasets)
     sources = {
         name: PileOracleDescriptors(model) if pile and isinstance(ref, str) and ref == "oracle"
         else load_descriptor_source(ref, model)

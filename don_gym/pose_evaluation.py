@@ -29,7 +29,7 @@ from tqdm.auto import tqdm
 from don_gym.dataset import DONDataset, instance_mask
 from don_gym.descriptor_sources import DescriptorSource, NetworkDescriptors, load_descriptor_source
 from don_gym.errors import DonGymError
-from don_gym.evaluation import _open_datasets, _source_info, dataset_object, frame_observation
+from don_gym.evaluation import _open_datasets, _source_info, frame_observation, pooled_object
 from don_gym.model import torch_device
 from don_gym.pose import PoseConfig, estimate_pose, pose_targets_for
 from don_gym.pose_metrics import adds, mspd, mssd, object_symmetries, pose_recalls
@@ -184,14 +184,7 @@ def evaluate_pose(
     if not methods:
         raise DonGymError("no methods to evaluate; give 'oracle' and/or network names or checkpoint paths")
     labelled = dict(methods) if isinstance(methods, Mapping) else {str(m): m for m in methods}
-    model = dataset_object(datasets[0])
-    for other in datasets[1:]:
-        differences = model.shape_signature.differences(dataset_object(other).shape_signature)
-        if differences:
-            raise DonGymError(
-                f"datasets {datasets[0].root} and {other.root} show different parts ({'; '.join(differences)}); "
-                "pool only datasets of one part"
-            )
+    model = pooled_object(datasets)
     sources = {name: load_descriptor_source(ref, model) for name, ref in labelled.items()}
     for source in sources.values():
         if isinstance(source, NetworkDescriptors):
