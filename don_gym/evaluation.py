@@ -289,6 +289,53 @@ def symmetric_distance(
     return np.hypot(h_a - h_b, r_a - r_b)
 
 
+def tracking_errors(
+    predicted_world: np.ndarray,
+    truth_world: np.ndarray,
+    T_world_object: np.ndarray,
+    axis_point_object: np.ndarray,
+    axis_object: np.ndarray | None,
+    T_world_twins: Sequence[np.ndarray] | None = None,
+) -> dict[str, np.ndarray]:
+    """3D errors (metres, (N,) each) of predicted world points (N, 3) against the true points (N, 3) of the
+    object at ``T_world_object``, by their :class:`TrackingMatches` names.
+
+    ``error_3d_m``: the distance; ``symmetric_error_m``: modulo the symmetry axis through ``axis_point_object``
+    along ``axis_object`` (object frame; :func:`symmetric_distance`), NaN for ``axis_object`` None. With
+    ``T_world_twins``, the poses of the other instances of the same part in a pile (possibly none), also
+    ``error_3d_any_instance_m`` and ``symmetric_error_any_instance_m``: the smallest of the two errors over the
+    object and each twin, the true point carried along with the instance (``T_twin @ inv(T_world_object)``).
+    A predicted point of NaN (no depth) gives NaN errors.
+    """
+    predicted = np.asarray(predicted_world, dtype=np.float64).reshape(-1, 3)
+
+    def errors(truth: np.ndarray, T_world_instance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        plain = np.linalg.norm(predicted - truth, axis=1)
+        if axis_object is None:
+            return plain, np.full(len(predicted), np.nan)
+        return plain, symmetric_distance(predicted, truth, T_world_instance, axis_point_object, axis_object)
+
+    truth = np.asarray(truth_world, dtype=np.float64).reshape(-1, 3)
+    plain, symmetric = errors(truth, T_world_object)
+    out = {"error_3d_m": plain, "symmetric_error_m": symmetric}
+    if T_world_twins is None:
+        return out
+    plain_any, symmetric_any = plain, symmetric
+    T_object_world = invert_transform(T_world_object)
+    for T_world_twin in T_world_twins:
+        twin = np.asarray(T_world_twin, dtype=np.float64)
+        plain_twin, symmetric_twin = errors(transform_points(twin @ T_object_world, truth), twin)
+        plain_any, symmetric_any = np.minimum(plain_any, plain_twin), np.minimum(symmetric_any, symmetric_twin)
+    return out | {"error_3d_any_instance_m": plain_any, "symmetric_error_any_instance_m": symmetric_any}
+
+
+def far_matches(error_3d_m: np.ndarray) -> np.ndarray:
+    """(M,) bool: a 3D error (metres) above :data:`FAR_MATCH_M` (False where NaN: no depth)."""
+    error = np.asarray(error_3d_m, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(error) & (error > FAR_MATCH_M)
+
+
 def percentiles(values: np.ndarray, which: Sequence[int] = PERCENTILES) -> dict[str, float | None]:
     """``{"p50": ..., "p90": ..., "p99": ..., "mean": ...}`` of the finite values (None if there are none)."""
     finite = np.asarray(values, dtype=np.float64)
@@ -497,7 +544,10 @@ class TrackingMatches:
       ``fraction_closer``, ``depth_valid`` (bool);
     - tails: ``error_3d_ideal_m``, the 3D error with the matched pixel's ideal depth (equal to
       ``error_3d_m`` with ideal depth; with sensor depth it tells a far match the depth made from one the
-      descriptors made), ``category`` int8 index into :data:`MATCH_CATEGORIES` (:func:`attribute_matches`).
+      descriptors made), ``category`` int8 index into :data:`MATCH_CATEGORIES` (:func:`attribute_matches`);
+    - piles only (None on datasets of one part, where they would equal the errors above):
+      ``error_3d_any_instance_m`` and ``symmetric_error_any_instance_m``, the 3D error and the 3D error modulo
+      symmetry to the same point on the nearest instance of the part in the scene (:func:`tracking_errors`).
 
     ``reference_points`` counts the reference pixels chosen over all scenes, ``scenes_evaluated`` the scenes.
     """
@@ -520,12 +570,13 @@ class TrackingMatches:
     category: np.ndarray
     reference_points: int = 0
     scenes_evaluated: int = 0
+    error_3d_any_instance_m: np.ndarray | None = None
+    symmetric_error_any_instance_m: np.ndarray | None = None
 
     @property
     def far(self) -> np.ndarray:
         """(M,) bool: 3D error above :data:`FAR_MATCH_M` (False without depth)."""
-        with np.errstate(invalid="ignore"):
-            return np.isfinite(self.error_3d_m) & (self.error_3d_m > FAR_MATCH_M)
+        return far_matches(self.error_3d_m)
 
     def summary(
         self,
@@ -534,7 +585,11 @@ class TrackingMatches:
         seed: int = BOOTSTRAP_SEED,
     ) -> dict[str, Any]:
         """Counts, percentiles and their intervals (scene bootstrap, :mod:`don_gym.stats`), the tail (p99 /
-        median, share of far matches, verdict), far matches by category and per scene."""
+        median, share of far matches, verdict), far matches by category and per scene.
+
+        With the any-instance errors (piles) also their percentiles (``error_3d_any_instance_mm``,
+        ``error_3d_symmetric_any_instance_mm``), ``tail_any_instance`` (far matches by the any-instance 3D
+        error: count, share and its interval) and, per category, ``matches_any_instance``."""
         valid = self.depth_valid
         n_scenes = max(int(self.scenes_evaluated), int(self.scene_id.max()) + 1 if len(self.scene_id) else 1)
         # The same counts for every method of a result (same scenes, same seed): their intervals are paired.
@@ -545,6 +600,11 @@ class TrackingMatches:
             "pixel_error_px": self.pixel_error_px,
             "fraction_closer": self.fraction_closer,
         }
+        any_instance = self.error_3d_any_instance_m is not None
+        if any_instance:
+            metrics["error_3d_any_instance_mm"] = self.error_3d_any_instance_m * 1000.0
+        if self.symmetric_error_any_instance_m is not None:
+            metrics["error_3d_symmetric_any_instance_mm"] = self.symmetric_error_any_instance_m * 1000.0
         intervals: dict[str, dict[str, list[float] | None]] = {}
         replicates_3d = np.full((len(counts), len(PERCENTILES)), np.nan)
         for name, values in metrics.items():
@@ -560,8 +620,20 @@ class TrackingMatches:
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio_replicates = replicates_3d[:, PERCENTILES.index(99)] / replicates_3d[:, PERCENTILES.index(50)]
         ratio_interval = _interval_pair(percentile_interval(ratio_replicates, confidence))
-        far = self.far
-        far_or_nan = np.where(valid & np.isfinite(self.error_3d_m), far.astype(np.float64), np.nan)
+
+        def far_share(error_m: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
+            far = far_matches(error_m)
+            far_or_nan = np.where(valid & np.isfinite(error_m), far.astype(np.float64), np.nan)
+            return far, {
+                "far_matches": int(far.sum()),
+                "far_share": float(far.sum() / valid.sum()) if valid.any() else None,
+                "far_share_interval": _interval_pair(
+                    percentile_interval(resampled_means(far_or_nan, self.scene_id, counts), confidence)
+                ),
+            }
+
+        far, far_tail = far_share(self.error_3d_m)
+        far_any, tail_any = far_share(self.error_3d_any_instance_m) if any_instance else (None, None)
         with np.errstate(invalid="ignore"):
             from_depth = far & (self.error_3d_ideal_m <= FAR_MATCH_M)
         per_scene_visible = np.bincount(self.scene_id, minlength=n_scenes)
@@ -584,16 +656,16 @@ class TrackingMatches:
                 "p99_over_p50": None if p50 is None or p99 is None or p50 <= 0 else p99 / p50,
                 "p99_over_p50_interval": ratio_interval,
                 "verdict": long_tail_verdict(ratio_interval if ratio_interval is not None else (np.nan, np.nan)),
-                "far_matches": int(far.sum()),
-                "far_share": float(far.sum() / valid.sum()) if valid.any() else None,
-                "far_share_interval": _interval_pair(
-                    percentile_interval(resampled_means(far_or_nan, self.scene_id, counts), confidence)
-                ),
+                **far_tail,
             },
+            **({} if tail_any is None else {"tail_any_instance": tail_any}),
             "far_by_category": {
                 name: {
                     "matches": int((far & (self.category == k)).sum()),
                     "far_only_from_depth": int((from_depth & (self.category == k)).sum()),
+                    **(
+                        {} if far_any is None else {"matches_any_instance": int((far_any & (self.category == k)).sum())}
+                    ),
                 }
                 for k, name in enumerate(MATCH_CATEGORIES)
             },
@@ -780,7 +852,9 @@ def evaluate_tracking_depths(
     frames where the ideal depth shows them (so occlusion by other instances counts), and matched in the whole
     image, among the other instances; the oracle renders every instance of the part
     (:class:`~don_gym.descriptor_sources.PileOracleDescriptors`). The scene list then has one entry per
-    instance (its ``instance_id``), the bootstrap's unit."""
+    instance (its ``instance_id``), the bootstrap's unit. Beside the errors to the reference instance's point,
+    the matches of a pile carry the errors to the same point on the nearest instance of the part
+    (:func:`tracking_errors`): descriptors of a part cannot tell its identical instances apart."""
     config.validate()
     depths = tuple(dict.fromkeys(depths))
     if not depths or any(d not in TRACKING_DEPTHS for d in depths):
@@ -816,7 +890,9 @@ def evaluate_tracking_depths(
         (d, s, instance)
         for d, data in enumerate(datasets)
         for s in range(len(data.scenes))[: config.max_scenes]
-        for instance in (_part_instances(data.scenes[s], model.name) if pile else [None])
+        for instance in (
+            [int(i["instance_id"]) for i in _part_instances(data.scenes[s], model.name)] if pile else [None]
+        )
     ]
     common_keys = (
         "scene_id",
@@ -834,6 +910,8 @@ def evaluate_tracking_depths(
         "category",
     )
     depth_keys = ("error_3d_m", "symmetric_error_m", "depth_valid")
+    if pile:
+        depth_keys += ("error_3d_any_instance_m", "symmetric_error_any_instance_m")
     collected: dict[str, list[dict[str, np.ndarray]]] = {name: [] for name in sources}
     scenes: list[dict[str, Any]] = []
     reference_points = 0
@@ -854,9 +932,12 @@ def evaluate_tracking_depths(
                     **({} if instance_id is None else {"instance_id": instance_id}),
                 }
             )
-            T_world_object = record.T_world_object
+            T_world_object, T_world_twins = record.T_world_object, None
             if instance_id is not None:
-                T_world_object = next(i["T_world_object"] for i in record.instances if i["instance_id"] == instance_id)
+                instances = _part_instances(record, model.name)
+                T_world_object = next(i["T_world_object"] for i in instances if i["instance_id"] == instance_id)
+                # Descriptors of a part are alike on all its instances: a match on the same point of a twin is right.
+                T_world_twins = [i["T_world_object"] for i in instances if i["instance_id"] != instance_id]
             reference = _scene_reference(data, scene, config, instance_id)
             reference_points += len(reference.uv)
             table_height_m = float(record.metadata.get("table_height_m", 0.0))
@@ -928,13 +1009,10 @@ def evaluate_tracking_depths(
                             depth = data.image(scene, frame, DEPTH_SOURCES[depth_name][0])
                             depth_images[depth_name][frame] = depth
                         predicted, depth_valid = world_points_at(matches.uv, depth, record.intrinsics, T_world_camera)
-                        symmetric = (
-                            symmetric_distance(predicted, truth, T_world_object, model.center_of_mass, axis)
-                            if axis is not None
-                            else np.full(len(rows), np.nan)
+                        errors = tracking_errors(
+                            predicted, truth, T_world_object, model.center_of_mass, axis, T_world_twins
                         )
-                        entry[f"error_3d_m:{depth_name}"] = np.linalg.norm(predicted - truth, axis=1)
-                        entry[f"symmetric_error_m:{depth_name}"] = symmetric
+                        entry |= {f"{key}:{depth_name}": values for key, values in errors.items()}
                         entry[f"depth_valid:{depth_name}"] = depth_valid
                     collected[name].append(entry)
 
@@ -991,8 +1069,9 @@ def _pile_part(datasets: list[DONDataset], part: str | None) -> ObjectModel:
     return model
 
 
-def _part_instances(record: SceneRecord, part: str) -> list[int]:
-    return [int(i["instance_id"]) for i in record.instances if i["part"] == part and "T_world_object" in i]
+def _part_instances(record: SceneRecord, part: str) -> list[dict[str, Any]]:
+    """The instances of ``part`` in a pile's record that have a pose (dicts of :attr:`SceneRecord.instances`)."""
+    return [i for i in record.instances if i["part"] == part and "T_world_object" in i]
 
 
 def methods_for_part(methods: Sequence[str], part: ObjectModel) -> list[str]:
@@ -1087,6 +1166,24 @@ def _estimate(method: Mapping[str, Any], metric: str, key: str, digits: int = 1,
     )
 
 
+def _p50_p90(method: Mapping[str, Any], metric: str, digits: int = 1, scale: float = 1.0) -> str:
+    """Median and 90th percentile of a metric with their intervals, ``p50 / p90``."""
+    return f"{_estimate(method, metric, 'p50', digits, scale)} / {_estimate(method, metric, 'p90', digits, scale)}"
+
+
+def _far_share_pct(far: Mapping[str, Any]) -> str:
+    """The share of far matches (a summary's ``tail`` or ``tail_any_instance``) in percent with its interval."""
+    share, interval = far["far_share"], far["far_share_interval"]
+    return format_estimate(
+        None if share is None else 100.0 * share, None if interval is None else [100.0 * v for v in interval], 2
+    )
+
+
+def _any_instance(summary: Mapping[str, Any]) -> bool:
+    """Whether the methods of a summary carry the any-instance errors of a pile (:func:`tracking_errors`)."""
+    return any("tail_any_instance" in m for m in summary["methods"].values())
+
+
 def _confidence(summary: Mapping[str, Any]) -> str:
     boot = summary.get("bootstrap", {})
     return (
@@ -1097,56 +1194,63 @@ def _confidence(summary: Mapping[str, Any]) -> str:
 
 def tracking_table(summary: Mapping[str, Any]) -> str:
     """Markdown table of a :meth:`TrackingResult.summary`: one row per method, every percentile with its
-    interval from resampling scenes."""
-    lines = [
+    interval from resampling scenes; on piles also the any-instance errors' p50 / p90."""
+    any_instance = _any_instance(summary)
+    header = (
         "| method | matches (with depth) | 3D error p50 (mm) | 3D error p90 (mm) | 3D error p99 (mm) "
         "| 3D error mod symmetry p50 (mm) | 3D error mod symmetry p90 (mm) | pixel error p50 / p90 (px) "
-        "| fraction closer p50 / p90 (%) |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
+        "| fraction closer p50 / p90 (%) |"
+    )
+    if any_instance:
+        header += " 3D error, any instance p50 / p90 (mm) | 3D error mod symmetry, any instance p50 / p90 (mm) |"
+    lines = [header, "|---|---|---|---|---|---|---|---|---|" + ("---|---|" if any_instance else "")]
     for name, m in summary["methods"].items():
         counts = m["counts"]
-        lines.append(
+        row = (
             f"| {name} | {counts['visible_matches']} ({counts['matches_with_depth']}) "
             f"| {_estimate(m, 'error_3d_mm', 'p50')} | {_estimate(m, 'error_3d_mm', 'p90')} "
             f"| {_estimate(m, 'error_3d_mm', 'p99')} | {_estimate(m, 'error_3d_symmetric_mm', 'p50')} "
-            f"| {_estimate(m, 'error_3d_symmetric_mm', 'p90')} "
-            f"| {_estimate(m, 'pixel_error_px', 'p50')} / {_estimate(m, 'pixel_error_px', 'p90')} "
-            f"| {_estimate(m, 'fraction_closer', 'p50', 3, 100.0)} "
-            f"/ {_estimate(m, 'fraction_closer', 'p90', 3, 100.0)} |"
+            f"| {_estimate(m, 'error_3d_symmetric_mm', 'p90')} | {_p50_p90(m, 'pixel_error_px')} "
+            f"| {_p50_p90(m, 'fraction_closer', 3, 100.0)} |"
         )
+        if any_instance:
+            row += f" {_p50_p90(m, 'error_3d_any_instance_mm')} | {_p50_p90(m, 'error_3d_symmetric_any_instance_mm')} |"
+        lines.append(row)
     return "\n".join(lines)
 
 
 def tail_table(summary: Mapping[str, Any]) -> str:
     """Markdown table of each method's tail: p99 / median of the 3D error and the share of far matches, with
-    their intervals, and the verdict (:func:`long_tail_verdict`)."""
+    their intervals, and the verdict (:func:`long_tail_verdict`); on piles also the far matches by the
+    any-instance 3D error."""
     far_mm = summary.get("far_match_mm", FAR_MATCH_M * 1000.0)
     ratio = summary.get("long_tail_ratio", LONG_TAIL_RATIO)
-    lines = [
+    any_instance = _any_instance(summary)
+    header = (
         f"| method | 3D error p99 / p50 | matches > {far_mm:.0f} mm | share > {far_mm:.0f} mm (%) "
-        f"| verdict (no long tail: p99 / p50 interval below {ratio:g}) |",
-        "|---|---|---:|---|---|",
-    ]
+        f"| verdict (no long tail: p99 / p50 interval below {ratio:g}) |"
+    )
+    if any_instance:
+        header += f" matches > {far_mm:.0f} mm, any instance | share > {far_mm:.0f} mm, any instance (%) |"
+    lines = [header, "|---|---|---:|---|---|" + ("---:|---|" if any_instance else "")]
     for name, m in summary["methods"].items():
-        tail = m["tail"]
-        share, share_interval = tail["far_share"], tail["far_share_interval"]
-        share_pct = format_estimate(
-            None if share is None else 100.0 * share,
-            None if share_interval is None else [100.0 * v for v in share_interval],
-            2,
-        )
-        lines.append(
+        tail, with_depth = m["tail"], m["counts"]["matches_with_depth"]
+        row = (
             f"| {name} | {format_estimate(tail['p99_over_p50'], tail['p99_over_p50_interval'])} "
-            f"| {tail['far_matches']} of {m['counts']['matches_with_depth']} | {share_pct} | {tail['verdict']} |"
+            f"| {tail['far_matches']} of {with_depth} | {_far_share_pct(tail)} | {tail['verdict']} |"
         )
+        if any_instance:
+            far_any = m["tail_any_instance"]
+            row += f" {far_any['far_matches']} of {with_depth} | {_far_share_pct(far_any)} |"
+        lines.append(row)
     return "\n".join(lines)
 
 
 def far_match_table(summary: Mapping[str, Any]) -> str:
     """Markdown table of where each method's far matches land (:func:`attribute_matches`): count and share
     of its far matches per category; with sensor depth also how many are far only because of the depth
-    (within the far threshold with ideal depth at the same pixel)."""
+    (within the far threshold with ideal depth at the same pixel). On piles a second row per method, ``<method>,
+    any instance``, counts the matches far by the any-instance 3D error (none that found the point on a twin)."""
     far_mm = summary.get("far_match_mm", FAR_MATCH_M * 1000.0)
     sensor = summary["config"]["depth"] != "ideal"
     pile = any("instance_id" in scene for scene in summary.get("scene_list", []))
@@ -1156,13 +1260,16 @@ def far_match_table(summary: Mapping[str, Any]) -> str:
         header += f" of these, within {far_mm:.0f} mm with ideal depth |"
     lines = [header, "|---|---:|" + "---:|" * len(categories) + ("---:|" if sensor else "")]
     for name, m in summary["methods"].items():
-        far = m["tail"]["far_matches"]
         by = m["far_by_category"]
-        cells = [f"{by[c]['matches']} ({100.0 * by[c]['matches'] / far:.0f}%)" if far else "0" for c in categories]
-        row = f"| {name} | {far} | " + " | ".join(cells) + " |"
-        if sensor:
-            row += f" {sum(v['far_only_from_depth'] for v in by.values())} |"
-        lines.append(row)
+        rows = [(name, m["tail"]["far_matches"], "matches")]
+        if "tail_any_instance" in m:
+            rows.append((f"{name}, any instance", m["tail_any_instance"]["far_matches"], "matches_any_instance"))
+        for label, far, key in rows:
+            cells = [f"{by[c][key]} ({100.0 * by[c][key] / far:.0f}%)" if far else "0" for c in categories]
+            row = f"| {label} | {far} | " + " | ".join(cells) + " |"
+            if sensor:  # only the reference instance's error was computed with ideal depth
+                row += f" {sum(v['far_only_from_depth'] for v in by.values()) if key == 'matches' else '-'} |"
+            lines.append(row)
     return "\n".join(lines)
 
 
@@ -1195,7 +1302,13 @@ def tracking_report(summary: Mapping[str, Any]) -> str:
         [
             f"{summary['scenes']} scenes of {summary['object']} (dataset seeds {seeds}, split "
             f"`{summary.get('split', '?')}`), predicted points from {summary['config']['depth']} depth. "
-            f"Every figure with its {_confidence(summary)}.",
+            f"Every figure with its {_confidence(summary)}."
+            + (
+                " Any instance: the error to the same point on the nearest instance of the part in the scene "
+                "(descriptors of a part cannot tell its instances apart; docs/background.md, Tracking in clutter)."
+                if _any_instance(summary)
+                else ""
+            ),
             tracking_table(summary),
             f"Tails (3D error; a match more than {far_mm:.0f} mm off is far):",
             tail_table(summary),
@@ -1265,8 +1378,9 @@ def write_tracking_outputs(
     """Write ``tracking.json`` (summary), ``tracking.md`` (:func:`tracking_report`), ``tracking_histogram.png``
     (the paper's stacked, normalised log-scale histogram of the 3D error, and of the 3D error modulo
     symmetry for a part with a symmetry axis), ``tracking_cdf.png`` (CDFs of 3D error, 3D error modulo
-    symmetry, pixel error and fraction closer) and ``tracking_worst_matches.png`` (the worst matches of
-    ``gallery_methods``; None: every method but the oracle; none, no gallery) into ``out_dir``."""
+    symmetry, on piles the same to any instance, pixel error and fraction closer) and
+    ``tracking_worst_matches.png`` (the worst matches of ``gallery_methods``; None: every method but the oracle;
+    none, no gallery) into ``out_dir``."""
     import json
 
     from don_gym import plotting
@@ -1302,6 +1416,15 @@ def write_tracking_outputs(
     ]
     if not has_axis:
         panels.pop(1)
+    elif all(m.symmetric_error_any_instance_m is not None for m in matches.values()):
+        panels.insert(
+            2,
+            (
+                "3D error modulo symmetry, any instance (mm)",
+                {k: m.symmetric_error_any_instance_m * 1000.0 for k, m in matches.items()},
+                0.1,
+            ),
+        )
     paths["cdf"] = plotting.plot_cdfs(
         panels, out / "tracking_cdf.png", title=f"Tracking, {summary['object']} ({name}, {depth} depth)"
     )

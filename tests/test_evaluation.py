@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 from synthetic_scenes import Sphere, look_at, render_scene, table_scene
 
 from don_gym.build import DatasetConfig, build_dataset
@@ -28,6 +29,7 @@ from don_gym.evaluation import (
     per_scene_table,
     seed_split,
     symmetric_distance,
+    tracking_errors,
     visible_projections,
     world_points_at,
     worst_matches,
@@ -96,6 +98,26 @@ def test_symmetric_distance_ignores_rotation_about_the_axis() -> None:
     assert np.linalg.norm(point - rotated) > 0.015
     raised = rotated + [0.0, 0.0, 0.003]
     assert symmetric_distance(point, raised, T_world_object, origin, axis)[0] == pytest.approx(0.003)
+
+
+def test_any_instance_error_finds_the_point_on_a_twin() -> None:
+    T_reference = make_transform(translation=[0.4, 0.1, 0.02])
+    T_twin = make_transform(
+        rotation=Rotation.from_euler("z", 90, degrees=True).as_matrix(), translation=[0.6, 0.0, 0.02]
+    )
+    truth = np.array([[0.41, 0.1, 0.025], [0.4, 0.1, 0.03]])
+    on_twin = transform_points(T_twin @ invert_transform(T_reference), truth)
+    predicted = np.vstack([on_twin[0], [np.nan] * 3])  # the first found on the twin, the second without depth
+    axis, origin = np.array([0.0, 0.0, 1.0]), np.zeros(3)
+    errors = tracking_errors(predicted, truth, T_reference, origin, axis, [T_twin])
+    assert errors["error_3d_m"][0] > 0.15 and errors["symmetric_error_m"][0] > 0.15
+    assert errors["error_3d_any_instance_m"][0] == pytest.approx(0.0, abs=1e-12)
+    assert errors["symmetric_error_any_instance_m"][0] == pytest.approx(0.0, abs=1e-12)
+    assert all(np.isnan(values[1]) for values in errors.values())
+    # Without twins the nearest instance is the reference; without a pile (None) there is no such error.
+    alone = tracking_errors(predicted, truth, T_reference, origin, axis, [])
+    np.testing.assert_array_equal(alone["error_3d_any_instance_m"], alone["error_3d_m"])
+    assert set(tracking_errors(predicted, truth, T_reference, origin, None)) == {"error_3d_m", "symmetric_error_m"}
 
 
 class NoiseDescriptors(DescriptorSource):
@@ -178,6 +200,9 @@ def test_cli_writes_json_table_and_plots(ideal_dataset: Path, tmp_path: Path, ca
         assert method["counts"]["visible_matches"] > 0
         assert len(method["per_scene"]) == 2 and set(method["far_by_category"]) == set(MATCH_CATEGORIES)
     assert summary["methods"][str(checkpoint)]["source"]["method"] == "supervised-edge"
+    # One part, one instance: no any-instance error in the summary or the report (a pile's, test_bin_data).
+    assert not any("any_instance" in key for method in summary["methods"].values() for key in method)
+    assert "any instance" not in printed
     assert summary["config"]["depth"] == "ideal" and summary["percentiles"] == [50, 90, 99]
     assert summary["split"] == "spent" and summary["bootstrap"]["unit"] == "scene"
     for name in ("tracking_histogram.png", "tracking_cdf.png", "tracking_worst_matches.png"):
