@@ -217,8 +217,8 @@ class AxisGraspAgent:
                 np.asarray(obs["camera_pose"], dtype=np.float64),
                 self.reference_descriptors,
                 window_m=self.window_m,
-                temperature=self.temperature,
-                sigma=self.confidence_sigma,
+                temperature=self.temperature * self.source.descriptor_scale,
+                sigma=self.confidence_sigma * self.source.descriptor_scale,
             )
             return found.points_world
         raise DonGymError(

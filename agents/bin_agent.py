@@ -500,7 +500,9 @@ class BinAxisGraspAgent(_BinAgentBase):
         fractions: axial fractions of the two ring keypoints.
         match_fraction: candidate ring matches lie below this fraction of the distance between the two reference
             descriptors.
-        temperature: soft-match weight scale (descriptor units) that moves each candidate to its ring's arc middle.
+        temperature: soft-match weight scale (in the part's own field's descriptor units: a network of several
+            parts scales it by :attr:`~don_gym.descriptor_sources.DescriptorSource.descriptor_scale`) that moves
+            each candidate to its ring's arc middle.
     """
 
     def __init__(
@@ -552,7 +554,11 @@ class BinAxisGraspAgent(_BinAgentBase):
         points, pixels, match_distances = [], [], []
         for k in range(2):
             uv, distance = local_matches(
-                distances[k], self.match_threshold, window_px, self.temperature, MAX_CANDIDATES_PER_RING
+                distances[k],
+                self.match_threshold,
+                window_px,
+                self.temperature * self.source.descriptor_scale,
+                MAX_CANDIDATES_PER_RING,
             )
             points_camera, ok = robust_point_from_depth(depth, intrinsics, uv) if len(uv) else (np.zeros((0, 3)), [])
             ok = np.asarray(ok, dtype=bool)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import warnings
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
@@ -112,6 +113,14 @@ class DescriptorSource(ABC):
     def field(self) -> DescriptorField | None:
         """The optimal field this source reproduces, when :attr:`reference_from_field`."""
         return None
+
+    @property
+    def descriptor_scale(self) -> float:
+        """How far apart this source puts the part's descriptors, as a factor of its own optimal field's
+        spacing: 1, except for a network of several parts, whose part regions hold each field shrunk by the
+        region's scale (:class:`~don_gym.descriptors.PartSpace`). Distance scales tuned on the part's own
+        field (the soft match's temperature, the keypoint confidence's sigma) are multiplied by it."""
+        return 1.0
 
     @abstractmethod
     def descriptor_image(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> np.ndarray:
@@ -322,6 +331,12 @@ class NetworkDescriptors(DescriptorSource):
     @property
     def reference_from_field(self) -> bool:
         return self.field is not None
+
+    @functools.cached_property
+    def descriptor_scale(self) -> float:
+        space = checkpoint_part_space(self.metadata) if self.metadata is not None else None
+        index = part_index_in(space, self.object_model) if space is not None and self.object_model else None
+        return 1.0 if index is None else float(space.parts[index].scale)
 
     def descriptor_image(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> np.ndarray:
         if "rgb" not in obs:

@@ -140,6 +140,10 @@ def test_one_network_for_both_parts(bin_data, multi_part_net, tmp_path):
         descriptors = source.field.vertex_descriptors
         assert np.all((descriptors >= low - 1e-6) & (descriptors <= high + 1e-6))
         np.testing.assert_allclose(source.field.background, space.background, atol=1e-6)
+        # Distance scales tuned on the part's own field (soft-match temperature) shrink with its region.
+        assert source.descriptor_scale == pytest.approx(space.parts[space.index(name)].scale)
+        assert 0.0 < source.descriptor_scale < 1.0
+    assert load_descriptor_source("toolcap/supervised-edge", load_object("toolcap")).descriptor_scale == 1.0
     box = tmp_path / "bracket.stl"
     trimesh.creation.box((0.04, 0.02, 0.01)).export(box)
     with pytest.raises(CheckpointError) as refused:

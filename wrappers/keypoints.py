@@ -63,7 +63,8 @@ class KeypointObservation(DescriptorObservation):
             seed and pose, see :meth:`ReferenceFrame.from_env`).
         window_m: soft-match radius in metres (None: the rings' diameter for the default keypoints,
             :data:`DEFAULT_WINDOW_M` otherwise; 0: plain best match).
-        temperature, confidence_sigma: descriptor-distance scales of the soft match and the confidence.
+        temperature, confidence_sigma: descriptor-distance scales of the soft match and the confidence, in the
+            part's own field's units (multiplied by the source's ``descriptor_scale`` for a network of several parts).
         descriptor_dim, occlusion_check: as for :class:`DescriptorObservation`.
         min_radius_px, max_radius_px: depth windows (:func:`don_gym.keypoints.robust_depth`).
     """
@@ -161,8 +162,8 @@ class KeypointObservation(DescriptorObservation):
             np.asarray(obs["camera_pose"], dtype=np.float64),
             self.reference_descriptors,
             window_m=self.window_m,
-            temperature=self.temperature,
-            sigma=self.confidence_sigma,
+            temperature=self.temperature * self.source.descriptor_scale,
+            sigma=self.confidence_sigma * self.source.descriptor_scale,
             min_radius_px=self.min_radius_px,
             max_radius_px=self.max_radius_px,
         )
