@@ -1,18 +1,32 @@
-"""Clearing piles from a bin (issue 33 item 7): piles of 3 toolcaps + 2 shafts, target toolcap, D435 wrist camera.
+"""Piles of 3 toolcaps + 2 shafts in a bin, D435 wrist camera (issue 33 item 7): clearing them, and tracking in them.
 
-Per method (the oracle with the true poses of the instances it sees, the descriptor agent on the pile's optimal
-descriptors, the toolcap's shipped networks, and the multi-part networks given with ``--multi-part``), the same
-seeded piles are picked one instance per step (:func:`don_gym.bin_benchmark.run_bin_benchmark`): piles cleared,
-picks per attempt, wrong-part picks and flipped placements, each with its 95% Wilson interval. The piles are the bin
-test piles (from :data:`don_gym.evaluation.BIN_TEST_SEED`, used for no decision); ``--split dev`` runs the
-development piles (from :data:`~don_gym.evaluation.BIN_DEVELOPMENT_SEED`) into section ``bin-dev``. Records
-RESULTS.md section ``bin`` with the issue's targets checked: the oracle clears >= 95% of piles; a supervised network
-of several parts reaches >= 85% picks per attempt with wrong-part picks <= 2% of picks. The chart goes to
-``benchmarks/figures/bin_rates.png``; the raw outputs to ``--work``.
+Clearing (``--only clearing``). Per method (the oracle with the true poses of the instances it sees, the descriptor
+agent on the pile's optimal descriptors, the toolcap's shipped networks, and the multi-part networks given with
+``--multi-part``), the same seeded piles are picked one instance per step, target toolcap
+(:func:`don_gym.bin_benchmark.run_bin_benchmark`): piles cleared, picks per attempt, wrong-part picks and flipped
+placements, each with its 95% Wilson interval. The piles are the bin test piles (from
+:data:`don_gym.evaluation.BIN_TEST_SEED`, used for no decision); ``--split dev`` runs the development piles (from
+:data:`~don_gym.evaluation.BIN_DEVELOPMENT_SEED`) into section ``bin-dev``. Records RESULTS.md section ``bin`` with
+the issue's targets checked: the oracle clears >= 95% of piles; a supervised network of several parts reaches >= 85%
+picks per attempt with wrong-part picks <= 2% of picks. The chart goes to ``benchmarks/figures/bin_rates.png``.
 
-    python benchmarks/bench_bin.py --multi-part runs/bin/supervised-edge.safetensors   # test piles, section "bin"
-    python benchmarks/bench_bin.py --quick        # 2 development piles, the two oracles, temp dir, records nothing
-    python benchmarks/bench_bin.py --split dev    # development piles, section "bin-dev"
+Tracking (``--only tracking``). Datasets of piles (:func:`don_gym.bin_dataset.build_bin_evaluation_datasets`), one
+per dataset seed of the split (:data:`don_gym.evaluation.SPLIT_SEEDS`, as benchmarks/bench_grasp.py's tracking: the
+test seeds, or the development seeds with ``--split dev``), ``--scenes`` piles x ``--frames`` frames each, at the
+networks' training size with the variety of the multi-part networks' training data (:data:`VARIETY`); per part the
+tracking protocol with D435 depth (:func:`don_gym.evaluation.evaluate_tracking_per_part`) for the oracle, the part's
+shipped networks and the ``--multi-part`` networks. Records RESULTS.md section ``bin-tracking`` (``bin-tracking-dev``
+for ``--split dev``) with the 3D error modulo symmetry to the nearest instance of the part (any instance: a part's
+instances are alike), its far share, and the issue's target checked: a network of several parts' median within
+1.5x the best single-part supervised network's of the same part.
+
+Both benchmarks run by default; datasets and raw outputs go to ``--work``.
+
+    python benchmarks/bench_bin.py --multi-part runs/bin/model.safetensors   # test split: "bin", "bin-tracking"
+    python benchmarks/bench_bin.py --only tracking --multi-part runs/bin/model.safetensors   # "bin-tracking" only
+    python benchmarks/bench_bin.py --only clearing --multi-part runs/bin/model.safetensors   # "bin" only
+    python benchmarks/bench_bin.py --quick        # tiny development piles, the oracles, temp dir, records nothing
+    python benchmarks/bench_bin.py --split dev    # development piles and seeds: "bin-dev", "bin-tracking-dev"
 """
 
 from __future__ import annotations
@@ -21,6 +35,7 @@ import argparse
 import shutil
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -35,10 +50,22 @@ from don_gym.bin_benchmark import (  # noqa: E402
     run_bin_benchmark,
     write_bin_outputs,
 )
-from don_gym.evaluation import BIN_DEVELOPMENT_SEED, BIN_TEST_SEED  # noqa: E402
-from don_gym.grasp_benchmark import default_methods  # noqa: E402
+from don_gym.bin_dataset import build_bin_evaluation_datasets  # noqa: E402
+from don_gym.evaluation import (  # noqa: E402
+    BIN_DEVELOPMENT_SEED,
+    BIN_TEST_SEED,
+    SPENT_SEEDS,
+    SPLIT_SEEDS,
+    TrackingConfig,
+    evaluate_tracking_per_part,
+    tail_table,
+    tracking_table,
+    write_tracking_outputs,
+)
+from don_gym.grasp_benchmark import default_methods, training_image_size  # noqa: E402
 from don_gym.objects import load_object  # noqa: E402
-from don_gym.zoo import shipped_names_for  # noqa: E402
+from don_gym.stats import BOOTSTRAP_RESAMPLES, format_estimate  # noqa: E402
+from don_gym.zoo import read_don_metadata, shipped_names_for  # noqa: E402
 
 PARTS = (("toolcap", 3), ("shaft", 2))
 TARGET = "toolcap"
@@ -47,6 +74,21 @@ SENSOR = "d435"
 PILES = 60
 QUICK_PILES = 2
 SPLIT_SEED = {"test": BIN_TEST_SEED, "dev": BIN_DEVELOPMENT_SEED}
+
+#: Tracking piles per dataset seed and frames per pile: 24 piles of a split, so >= 48 reference instances of the
+#: shaft (2 per pile) and 72 of the toolcap; 6 frames like the multi-part training data.
+TRACKING_SCENES = 8
+TRACKING_FRAMES = 6
+#: The variety of the multi-part networks' training data (runs/bin/data_bin/dataset.json: backgrounds, lighting).
+VARIETY = {"backgrounds": "wide", "lighting": "random"}
+#: The quick run's tracking: one pile of 3 frames (the split's first seed) at 64x48, the oracle only.
+QUICK_TRACKING = {"scenes": 1, "frames": 3, "image_size": (64, 48), "points": 4}
+#: The summary metric of the issue's tracking target: 3D error modulo symmetry to the nearest instance of the part.
+TARGET_METRIC = "error_3d_symmetric_any_instance_mm"
+#: The issue's target: a network of several parts' median at most this many times the best single-part
+#: supervised network's median on the same part.
+TARGET_RATIO = 1.5
+SUPERVISED = ("supervised-edge", "supervised-mask")
 
 
 def methods(multi_part: list[str], quick: bool) -> list[str]:
@@ -58,30 +100,9 @@ def methods(multi_part: list[str], quick: bool) -> list[str]:
     return [ORACLE_METHOD, ORACLE_DESCRIPTORS_METHOD, *own, *multi_part]
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument(
-        "--multi-part",
-        nargs="*",
-        default=[],
-        metavar="CHECKPOINT",
-        help="networks of several parts (trained on bin datasets) benchmarked beside the single-part ones",
-    )
-    parser.add_argument(
-        "--split",
-        choices=("test", "dev"),
-        default=None,
-        help="the test piles (default) or the development piles (section bin-dev; the default of --quick)",
-    )
-    parser.add_argument("--piles", type=int, default=None, help=f"piles per method (default: {PILES})")
-    parser.add_argument("--quick", action="store_true", help="2 development piles, the two oracles; records nothing")
-    parser.add_argument("--workers", type=int, default=2, help="worker processes (default: 2)")
-    parser.add_argument("--device", default="cpu", help="device of the networks (default: cpu)")
-    parser.add_argument("--work", default="bench_work/bin", help="folder for the raw outputs (default: bench_work/bin)")
-    args = parser.parse_args()
-    split = args.split or ("dev" if args.quick else "test")
+def clearing(args: argparse.Namespace, split: str) -> None:
+    """The clearing benchmark: section ``bin`` (``bin-dev``)."""
     piles = args.piles if args.piles is not None else (QUICK_PILES if args.quick else PILES)
-    freeze_commit_description()
     chosen = methods(list(args.multi_part), args.quick)
     config = BinBenchmarkConfig(
         parts=PARTS,
@@ -126,6 +147,187 @@ def main() -> None:
     finally:
         if args.quick:
             shutil.rmtree(work, ignore_errors=True)
+
+
+# --- tracking -------------------------------------------------------------------------------------
+
+
+def part_networks(part: str) -> list[str]:
+    """The part's shipped networks, in the paper's order (supervised-edge, supervised-mask, self-supervised)."""
+    shipped = set(shipped_names_for(load_object(part)))
+    return [m for m in default_methods(part) if m in shipped]
+
+
+def tracking_target(summary: dict, singles: list[str], multi_part: list[str]) -> list[str]:
+    """The issue's target on one part (``summary``: its :meth:`TrackingResult.summary`), one line per network of
+    several parts: its median :data:`TARGET_METRIC` over the lowest one of the single-part supervised networks
+    among ``singles``, and the verdict that ratio gives."""
+    methods = summary["methods"]
+    if not multi_part:
+        return ["no network of several parts given (--multi-part): the target is not checked"]
+    supervised = [n for n in singles if n in methods and methods[n]["source"].get("method") in SUPERVISED]
+    with_median = [n for n in supervised if methods[n][TARGET_METRIC]["p50"]]
+    if not with_median:
+        return ["no single-part supervised network with a median to compare with: the target is not checked"]
+    best = min(with_median, key=lambda n: methods[n][TARGET_METRIC]["p50"])
+
+    def median(name: str) -> str:
+        interval = methods[name].get("intervals", {}).get(TARGET_METRIC, {}).get("p50")
+        return f"{format_estimate(methods[name][TARGET_METRIC]['p50'], interval)} mm"
+
+    lines = []
+    for name in multi_part:
+        value = methods[name][TARGET_METRIC]["p50"]
+        if value is None:
+            lines.append(f"{name}: no match with depth, no median: the target is not checked")
+            continue
+        ratio = value / methods[best][TARGET_METRIC]["p50"]
+        verdict = "met" if ratio <= TARGET_RATIO else "missed"
+        lines.append(
+            f"{name}: median {median(name)} / {best}'s {median(best)} (the better single-part supervised network "
+            f"of the part) = {ratio:.2f}, target <= {TARGET_RATIO:g}: **{verdict}**"
+        )
+    return lines
+
+
+def tracking(args: argparse.Namespace, split: str) -> None:
+    """The tracking benchmark on piles: section ``bin-tracking`` (``bin-tracking-dev``)."""
+    seeds = SPLIT_SEEDS[split]
+    multi_part = [] if args.quick else list(args.multi_part)
+    if args.quick:
+        scenes, frames, points = QUICK_TRACKING["scenes"], QUICK_TRACKING["frames"], QUICK_TRACKING["points"]
+        image_size = QUICK_TRACKING["image_size"]
+        seeds = seeds[:1]
+        singles: dict[str, list[str]] = {}
+    else:
+        scenes, frames, points = args.scenes, args.frames, args.points
+        singles = {part: part_networks(part) for part, _ in PARTS}
+        trained = {n: tuple(read_don_metadata(n).image_size) for n in [*sum(singles.values(), []), *multi_part]}
+        image_size = training_image_size(trained)
+    chosen = ["oracle", *sum(singles.values(), []), *multi_part]
+    root = Path(tempfile.mkdtemp(prefix="don_gym_bench_bin_")) if args.quick else Path(args.work)
+    work = root / f"tracking_{split}"
+    try:
+        start = time.perf_counter()
+        datasets = build_bin_evaluation_datasets(
+            dict(PARTS),
+            seeds,
+            work,
+            split,
+            scenes,
+            frames,
+            image_size,
+            args.workers,
+            progress=not args.quick,
+            **VARIETY,
+        )
+        build_s = time.perf_counter() - start
+        start = time.perf_counter()
+        config = TrackingConfig(points_per_scene=points, depth="sensor")
+        results = evaluate_tracking_per_part(datasets, chosen, config, progress=not args.quick, device=args.device)
+        parts = []
+        for part, result in results.items():
+            summary = result.summary()
+            write_tracking_outputs(result, work / part)
+            far_mm = summary["far_match_mm"]
+            parts.append(
+                f"### {part}\n\n{summary['scenes']} reference instances of the {part}.\n\n"
+                + tracking_table(summary)
+                + f"\n\nTails (a match more than {far_mm:.0f} mm off is far; *any instance*: by the 3D error to the "
+                "nearest instance of the part):\n\n"
+                + tail_table(summary)
+                + "\n\nThe issue's target (median 3D error mod symmetry, any instance, D435 depth):\n\n"
+                + "\n".join(f"- {line}" for line in tracking_target(summary, singles.get(part, []), multi_part))
+            )
+        evaluation_s = time.perf_counter() - start
+        width, height = image_size
+        size_note = "the quick run's tiny size" if args.quick else "the networks' training size"
+        body = (
+            f"Split `{split}`: dataset seeds {', '.join(map(str, seeds))} "
+            + (
+                "(the test seeds: no decision about data, networks or training has used them; "
+                if split == "test"
+                else "(the development seeds, for decisions; "
+            )
+            + f"spent: {', '.join(map(str, SPENT_SEEDS))}), {scenes} piles x {frames} frames each, "
+            f"{len(seeds) * scenes} piles of {' + '.join(f'{n} {p}s' for p, n in PARTS)}, pooled, {width}x{height} "
+            f"({size_note}), sensor `{SENSOR}`, backgrounds `{VARIETY['backgrounds']}` and lighting "
+            f"`{VARIETY['lighting']}` (those of the multi-part networks' training data). Protocol "
+            "(`don_gym.evaluation.evaluate_tracking_per_part`): per part, every instance of it in a pile gets "
+            f"{points} reference pixels in the frame showing most of it, followed through the frames where the ideal "
+            "depth shows them (occlusion by other instances counts); the best match is the argmin L2 over the whole "
+            f"image and the predicted point back-projects the frame's {SENSOR} depth with the true camera pose. "
+            "Methods: the oracle (optimal descriptors rendered for every instance of the part), the part's shipped "
+            "single-part networks, and the networks of several parts given with `--multi-part`. *Any instance*: "
+            "the error to the same point on the nearest instance of the part, since a part's descriptors are alike "
+            "on its identical instances; *mod symmetry*: the distance between the rings the predicted and true "
+            "points sweep about the part's axis. Intervals: 95%, bootstrap over reference instances (the scenes "
+            f"of the tables; {BOOTSTRAP_RESAMPLES} resamples).\n\n"
+            + "\n\n".join(parts)
+            + f"\n\nDatasets built in {build_s:.0f} s, both parts evaluated in {evaluation_s:.0f} s"
+            + ("." if args.quick else f"; raw outputs in `{work}`.")
+        )
+    finally:
+        if args.quick:
+            shutil.rmtree(root, ignore_errors=True)
+    print(body)
+    if args.quick:
+        print("quick run: nothing recorded")
+    elif split == "test":
+        record_section("bin-tracking", "Tracking in piles of a bin (test split)", body, after="bin")
+    else:
+        title = "Tracking in piles of a bin (development split)"
+        record_section("bin-tracking-dev", title, body, after="bin-tracking")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument(
+        "--multi-part",
+        nargs="*",
+        default=[],
+        metavar="CHECKPOINT",
+        help="networks of several parts (trained on bin datasets) benchmarked beside the single-part ones",
+    )
+    parser.add_argument(
+        "--split",
+        choices=("test", "dev"),
+        default=None,
+        help="the test piles and seeds (default) or the development ones (sections bin-dev, bin-tracking-dev; the "
+        "default of --quick)",
+    )
+    parser.add_argument(
+        "--only", choices=("clearing", "tracking"), default=None, help="run one benchmark (default: both)"
+    )
+    parser.add_argument("--piles", type=int, default=None, help=f"clearing: piles per method (default: {PILES})")
+    parser.add_argument(
+        "--scenes",
+        type=int,
+        default=TRACKING_SCENES,
+        help=f"tracking: piles per dataset seed (default: {TRACKING_SCENES})",
+    )
+    parser.add_argument(
+        "--frames", type=int, default=TRACKING_FRAMES, help=f"tracking: frames per pile (default: {TRACKING_FRAMES})"
+    )
+    parser.add_argument("--points", type=int, default=16, help="tracking: reference pixels per instance (default: 16)")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="clearing: 2 development piles, the two oracles; tracking: one tiny development pile, the oracle; "
+        "records nothing",
+    )
+    parser.add_argument("--workers", type=int, default=2, help="worker processes (default: 2)")
+    parser.add_argument("--device", default="cpu", help="device of the networks (default: cpu)")
+    parser.add_argument(
+        "--work", default="bench_work/bin", help="folder for datasets and raw outputs (default: bench_work/bin)"
+    )
+    args = parser.parse_args()
+    split = args.split or ("dev" if args.quick else "test")
+    freeze_commit_description()
+    if args.only in (None, "clearing"):
+        clearing(args, split)
+    if args.only in (None, "tracking"):
+        tracking(args, split)
 
 
 if __name__ == "__main__":

@@ -182,7 +182,8 @@ def plot_error_histograms(
         samples = [by_method[k] for k in by_method]
         _stacked_histogram(ax, by_method, floor, log_bins(samples, floor), list(by_method))
         ax.set_xlabel(xlabel)
-    axes[-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+    if axes[-1].get_legend_handles_labels()[0]:  # no method with a finite value draws nothing to label
+        axes[-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     if title:
         fig.suptitle(title, fontsize=10)
     return _save(fig, path)
