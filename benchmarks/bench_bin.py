@@ -10,7 +10,7 @@ placements, each with its 95% Wilson interval. The piles are the bin test piles 
 the issue's targets checked: the oracle clears >= 95% of piles; a supervised network of several parts reaches >= 85%
 picks per attempt with wrong-part picks <= 2% of picks. The chart goes to ``benchmarks/figures/bin_rates.png``.
 
-Tracking (``--only tracking``). Datasets of piles (:func:`don_gym.bin_dataset.build_bin_evaluation_datasets`), one
+Tracking (``--only tracking``). Datasets of piles (:func:`don_gym.build.build_evaluation_datasets`), one
 per dataset seed of the split (:data:`don_gym.evaluation.SPLIT_SEEDS`, as benchmarks/bench_grasp.py's tracking: the
 test seeds, or the development seeds with ``--split dev``), ``--scenes`` piles x ``--frames`` frames each, at the
 networks' training size with the variety of the multi-part networks' training data (:data:`VARIETY`); per part the
@@ -50,7 +50,7 @@ from don_gym.bin_benchmark import (  # noqa: E402
     run_bin_benchmark,
     write_bin_outputs,
 )
-from don_gym.bin_dataset import build_bin_evaluation_datasets  # noqa: E402
+from don_gym.build import build_evaluation_datasets  # noqa: E402
 from don_gym.evaluation import (  # noqa: E402
     BIN_DEVELOPMENT_SEED,
     BIN_TEST_SEED,
@@ -209,8 +209,8 @@ def tracking(args: argparse.Namespace, split: str) -> None:
     work = root / f"tracking_{split}"
     try:
         start = time.perf_counter()
-        datasets = build_bin_evaluation_datasets(
-            dict(PARTS),
+        datasets = build_evaluation_datasets(
+            None,
             seeds,
             work,
             split,
@@ -218,6 +218,7 @@ def tracking(args: argparse.Namespace, split: str) -> None:
             frames,
             image_size,
             args.workers,
+            parts=dict(PARTS),
             progress=not args.quick,
             **VARIETY,
         )

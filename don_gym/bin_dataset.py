@@ -15,7 +15,7 @@ from __future__ import annotations
 import functools
 import json
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -330,40 +330,6 @@ def build_bin_dataset(
         start=start,
         desc="build-dataset (bin)",
     )
-
-
-def build_bin_evaluation_datasets(
-    parts: Mapping[str, int],
-    seeds: Sequence[int],
-    out_root: str | Path,
-    split: str,
-    scenes: int,
-    frames_per_scene: int,
-    image_size: tuple[int, int],
-    workers: int = 1,
-    backgrounds: str = "classic",
-    lighting: str = "fixed",
-    progress: bool = True,
-) -> list[Path]:
-    """The evaluation datasets of piles, one per seed of a split (``out_root/<split>_pile_<seed>``): D435 depth
-    and no fused depth (evaluation reads the sensor and ideal depth only); built, or resumed where a run stopped.
-    The bin counterpart of :func:`~don_gym.build.build_evaluation_datasets`; ``backgrounds`` and ``lighting`` as
-    in :class:`~don_gym.build.DatasetConfig`, to match the variety the networks were trained on."""
-    datasets = []
-    for seed in seeds:
-        config = DatasetConfig(
-            scenes=scenes,
-            frames_per_scene=frames_per_scene,
-            image_size=image_size,
-            sensor="d435",
-            seed=seed,
-            fuse_depth=False,
-            backgrounds=backgrounds,
-            lighting=lighting,
-        )
-        datasets.append(Path(out_root) / f"{split}_pile_{seed}")
-        build_bin_dataset(config, parts, datasets[-1], workers=workers, progress=progress)
-    return datasets
 
 
 def _open_bin_writer(config: DatasetConfig, parts: dict[str, int], out_dir: Path, lock: DatasetLock) -> BinSceneWriter:
