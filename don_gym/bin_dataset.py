@@ -47,7 +47,14 @@ from don_gym.dataset import (
     write_json,
 )
 from don_gym.descriptors import FIELD_MATCH_ATOL, DescriptorField
-from don_gym.descriptors.multi_part import DEFAULT_PART_GAP, PartSpace, build_part_space, part_space_for
+from don_gym.descriptors.multi_part import (
+    DEFAULT_PART_GAP,
+    IDENTITY_LAYOUT,
+    LAYOUT_CHOICES,
+    PartSpace,
+    build_part_space,
+    part_space_for,
+)
 from don_gym.errors import DatasetError, DonGymError
 from don_gym.geometry import invert_transform
 from don_gym.io import write_text_atomic
@@ -398,15 +405,13 @@ def instance_parts(record: SceneRecord) -> dict[int, str]:
 
 
 def _own_descriptors(space: PartSpace, descriptor_image: np.ndarray, labels: np.ndarray) -> np.ndarray:
-    """The inverse of :meth:`PartSpace.map_descriptor_image` on labelled pixels (each part's own field values)."""
-    out = np.zeros_like(descriptor_image, dtype=np.float32)
-    dims = space.separated_dims
-    for k, region in enumerate(space.parts):
+    """The inverse of :meth:`PartSpace.map_descriptor_image` on labelled pixels: (H, W, F) each part's own field
+    values (F = :attr:`PartSpace.field_dim`), 0 off every part."""
+    out = np.zeros((*descriptor_image.shape[:2], space.field_dim), dtype=np.float32)
+    for k in range(len(space.parts)):
         on = labels == k + 1
         if on.any():
-            values = descriptor_image[on].astype(np.float64)
-            values[:, dims] = (values[:, dims] - region.offset[dims]) / region.scale
-            out[on] = np.clip(values, 0.0, 1.0)
+            out[on] = np.clip(space.own_descriptors(k, descriptor_image[on]), 0.0, 1.0)
     return out
 
 
@@ -416,22 +421,40 @@ class BinTargets:
     ``"geometric"`` and ``"edge"`` train in the dataset's space (``part_space.json``). ``"mask"`` trains in a
     space built from the same fields with the last dimension left to the mask channel
     (:func:`~don_gym.descriptors.multi_part.build_part_space` with ``mask_dim=-1``), the stored targets moved
-    into it. :attr:`space` is the one the network learns (its checkpoint records it), :attr:`background` its
-    background (the targets' off every instance).
+    into it. ``layout="identity"`` trains ``"geometric"`` and ``"edge"`` in the identity layout of the same
+    fields (one dimension more: each part's whole field plus its identity coordinate), the stored targets moved
+    into it likewise; it refuses ``"mask"``. :attr:`space` is the one the network learns (its checkpoint records
+    it; the network outputs its :attr:`~PartSpace.dim` channels), :attr:`background` its background (the
+    targets' off every instance).
     """
 
-    def __init__(self, data: DONDataset, variant: str, edge_width_px: float | None = None) -> None:
+    def __init__(
+        self, data: DONDataset, variant: str, edge_width_px: float | None = None, layout: str = "auto"
+    ) -> None:
+        if layout not in LAYOUT_CHOICES:
+            raise DatasetError(f"part layout {layout!r} is unknown; expected one of {list(LAYOUT_CHOICES)}")
+        if layout == IDENTITY_LAYOUT and variant == "mask":
+            raise DatasetError(
+                "part layout 'identity' does not support the mask variant (supervised-mask), whose mask channel "
+                "would replace a descriptor dimension; use supervised or supervised-edge, or part layout 'auto'"
+            )
         self.data = data
         self.variant = variant
         self.stored_space = load_part_space(data)
-        if variant == "mask":
+        if layout == IDENTITY_LAYOUT and len(self.stored_space.parts) < 2:
+            raise DatasetError(
+                f"part layout 'identity' (--part-layout) is for several parts; {data.root} holds one part "
+                f"({self.stored_space.names[0]!r}), which trains in its own space (--part-layout auto)"
+            )
+        if variant == "mask" or layout == IDENTITY_LAYOUT:
             fields = load_part_fields(data)
             self.space = build_part_space(
                 list(self.stored_space.names),
                 [fields[n].vertex_descriptors for n in self.stored_space.names],
                 [p.signature for p in self.stored_space.parts],
                 gap=self.stored_space.gap,
-                mask_dim=-1,
+                mask_dim=-1 if variant == "mask" else None,
+                layout=layout,
             )
         else:
             self.space = self.stored_space
@@ -440,7 +463,7 @@ class BinTargets:
         self.edge_width_px = default_edge_width_px(width) if edge_width_px is None else float(edge_width_px)
 
     def frame(self, scene: int, frame: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(target (H, W, D) float32, object_mask (H, W) bool)`` of one frame."""
+        """``(target (H, W, D) float32 (D = :attr:`space`'s), object_mask (H, W) bool)`` of one frame."""
         mask = self.data.image(scene, frame, "target_mask")
         ids = np.where(mask, self.data.image(scene, frame, "instance"), 0).astype(np.int32)
         descriptor = self.data.image(scene, frame, "descriptor")

@@ -641,7 +641,9 @@ def restamp_checkpoint(
     if wants_field:
         recorded = metadata.descriptor_field_hash
         found = [f for f in candidate_fields if f.field_hash == recorded and f.n_vertices == len(part.mesh.vertices)]
-        computed = [] if found else [embed(part, dim=metadata.descriptor_dim, symmetric=s) for s in (True, False)]
+        space = checkpoint_part_space(metadata)  # the part's own field has the space's field_dim
+        dim = space.field_dim if space is not None else metadata.descriptor_dim
+        computed = [] if found else [embed(part, dim=dim, symmetric=s) for s in (True, False)]
         found += [f for f in computed if f.field_hash == recorded]
         field_obj = found[0] if found else None
         if field_obj is None and existing is not None:

@@ -319,7 +319,7 @@ class NetworkDescriptors(DescriptorSource):
         settings = self.metadata.descriptor_field
         trained = self.identity.field if self.identity is not None else None
         symmetric = trained.symmetric if trained is not None else bool(settings.get("symmetric", True))
-        own = descriptor_field_for(self.object_model, space.dim, symmetric)
+        own = descriptor_field_for(self.object_model, space.field_dim, symmetric)
         if trained is not None and not self.object_model.shape_signature.differences(self.identity.signature):
             own = self.identity.field_on(self.object_model, own, self.source)
         return dataclasses.replace(

@@ -86,6 +86,9 @@ class SupervisedFrames(Dataset):
     mask: ``"geometric"`` (method ``supervised``), ``"edge"`` (``supervised-edge``) or ``"mask"``
     (``supervised-mask``). With ``crop_size`` (width, height), each item is a window cut by
     :func:`crop_window` (object-centred with probability ``1 - background_crop_probability``).
+    ``part_layout`` is the layout of a bin dataset's descriptor space to train in (:class:`BinTargets`):
+    ``"auto"`` the dataset's own, ``"identity"`` one more dimension for part identity; a dataset of one
+    part accepts only ``"auto"``.
     """
 
     def __init__(
@@ -96,10 +99,16 @@ class SupervisedFrames(Dataset):
         crop_size: tuple[int, int] | None = None,
         background_crop_probability: float = 0.1,
         seed: int = 0,
+        part_layout: str = "auto",
     ) -> None:
         if variant not in TARGET_VARIANTS:
             raise DatasetError(f"target variant {variant!r} is unknown; expected one of {TARGET_VARIANTS}")
         self.data = DONDataset(root)
+        if part_layout != "auto" and not is_multi_part(self.data):
+            raise DatasetError(
+                f"part layout {part_layout!r} (--part-layout) is for bin datasets of several parts; {self.data.root} "
+                "is a dataset of one part, which trains in its own space (--part-layout auto)"
+            )
         self.variant = variant
         width = self.data.scenes[0].intrinsics.width
         self.edge_width_px = default_edge_width_px(width) if edge_width_px is None else float(edge_width_px)
@@ -108,7 +117,7 @@ class SupervisedFrames(Dataset):
         #: The multi-part descriptor space the network learns (bin datasets), else None.
         self.part_space = None
         if is_multi_part(self.data):
-            self.bin_targets = BinTargets(self.data, variant, self.edge_width_px)
+            self.bin_targets = BinTargets(self.data, variant, self.edge_width_px, part_layout)
             self.part_space = self.bin_targets.space
             self.background = self.bin_targets.background
         else:

@@ -40,6 +40,7 @@ from tqdm.auto import tqdm
 from don_gym.augment import AugmentConfig
 from don_gym.checkpoints import CheckpointMetadata, PartIdentity, save_checkpoint
 from don_gym.dataset import DEPTH_SOURCES, DONDataset
+from don_gym.descriptors.multi_part import IDENTITY_LAYOUT, LAYOUT_CHOICES
 from don_gym.distributed import (
     BACKENDS,
     SINGLE_PROCESS,
@@ -95,7 +96,10 @@ class TrainConfig:
     training thread does). ``device`` is ``"auto"`` (CUDA if present), ``"cpu"``, ``"cuda"`` or
     ``"cuda:N"``; ``precision`` ``"auto"`` is bf16 autocast on GPUs that support it, else fp16
     with a gradient scaler, and fp32 on the CPU. ``backend`` (``"auto"``: NCCL on GPUs, gloo on
-    CPUs) is the torch.distributed backend under torchrun."""
+    CPUs) is the torch.distributed backend under torchrun. ``part_layout`` (supervised methods on bin datasets of
+    several parts only) is the descriptor space's layout the network learns: ``"auto"`` the dataset's own,
+    ``"identity"`` every part's whole field plus one output channel for part identity
+    (:func:`~don_gym.descriptors.multi_part.build_part_space`; not with ``supervised-mask``)."""
 
     method: str
     data: str
@@ -121,6 +125,7 @@ class TrainConfig:
     workers: int = 0
     precision: str = "auto"
     backend: str = "auto"
+    part_layout: str = "auto"
 
     def learning_rate(self) -> float:
         if self.lr is not None:
@@ -191,6 +196,18 @@ def validate_config(config: TrainConfig) -> None:
         raise DonGymError(f"precision {config.precision!r} is unknown; expected one of {list(PRECISIONS)}")
     if config.backend not in BACKENDS:
         raise DonGymError(f"backend {config.backend!r} is unknown; expected one of {list(BACKENDS)}")
+    if config.part_layout not in LAYOUT_CHOICES:
+        raise DonGymError(f"part_layout {config.part_layout!r} is unknown; expected one of {list(LAYOUT_CHOICES)}")
+    if config.part_layout != "auto" and not is_supervised(config.method):
+        raise DonGymError(
+            f"part_layout {config.part_layout!r} is for the supervised methods; {config.method} learns a descriptor "
+            "space of its own (use part_layout 'auto')"
+        )
+    if config.part_layout == IDENTITY_LAYOUT and config.method == "supervised-mask":
+        raise DonGymError(
+            "part_layout 'identity' does not support supervised-mask, whose mask channel would replace a "
+            "descriptor dimension; use supervised or supervised-edge, or part_layout 'auto'"
+        )
     if config.pretrained_path is not None and not ARCHS[config.arch].torchvision_layout:
         raise DonGymError(
             f"pretrained weights {config.pretrained_path}: arch {config.arch!r} has no ImageNet layout; "
@@ -428,6 +445,7 @@ def _open_source(config: TrainConfig) -> SupervisedFrames | CorrespondencePairs:
             crop_size=config.crop_size,
             seed=config.seed,
             background_crop_probability=config.background_crop_probability,
+            part_layout=config.part_layout,
         )
     return CorrespondencePairs(
         config.data,
@@ -516,8 +534,11 @@ def _train(
     part_space = getattr(source, "part_space", None)
     part_space_record = part_space.to_dict() if part_space is not None else None
 
+    # A network of several parts outputs its space's D (one more than the fields' with the identity layout).
+    descriptor_dim = part_space.dim if part_space is not None and supervised else int(info["descriptor_dim"])
+
     torch.manual_seed(config.seed)
-    model = DenseObjectNet(config.arch, int(info["descriptor_dim"])).to(device)
+    model = DenseObjectNet(config.arch, descriptor_dim).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate(), weight_decay=config.weight_decay)
     scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=config.lr_decay_every, gamma=config.lr_decay)
     scaler = torch.amp.GradScaler(device.type) if amp_dtype == torch.float16 else None

@@ -22,7 +22,7 @@ from don_gym.checkpoints import read_checkpoint_metadata
 from don_gym.cli import main
 from don_gym.dataset import DONDataset
 from don_gym.descriptor_sources import load_descriptor_source
-from don_gym.errors import CheckpointError
+from don_gym.errors import CheckpointError, DatasetError, DonGymError
 from don_gym.evaluation import TrackingConfig, evaluate_tracking_per_part
 from don_gym.geometry import invert_transform
 from don_gym.objects import load_object
@@ -124,6 +124,97 @@ def test_bad_parts_are_refused_in_one_line(parts, expected, tmp_path, capsys):
     assert main([*argv, "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert expected in err and "--parts" in err and len(err.splitlines()) == 1
+    assert not out.exists()
+
+
+@pytest.fixture(scope="module")
+def identity_net(bin_data, tmp_path_factory) -> str:
+    out = tmp_path_factory.mktemp("run") / "identity"
+    config = TrainConfig(
+        method="supervised-edge", data=str(bin_data.root), out=str(out), steps=2, batch_size=2, crop_size=(64, 48),
+        device="cpu", threads=1, checkpoint_every=100, part_layout="identity",
+    )  # fmt: skip
+    train(config, progress=False)
+    return str(out / "model.safetensors")
+
+
+def test_identity_layout_targets_keep_each_parts_whole_field(bin_data):
+    stored = load_part_space(bin_data)
+    targets = BinTargets(bin_data, "geometric", layout="identity")
+    space = targets.space
+    assert (space.layout, space.dim, space.field_dim, space.names) == ("identity", 4, 3, ("toolcap", "shaft"))
+    target, mask = targets.frame(0, 0)
+    assert target.shape == (48, 64, 4)
+    ids = np.where(mask, bin_data.image(0, 0, "instance"), 0)
+    descriptor = bin_data.image(0, 0, "descriptor")
+    for instance, part in instance_parts(bin_data.scenes[0]).items():
+        on = ids == instance
+        k = space.index(part)
+        np.testing.assert_array_equal(target[on][:, 3], np.float32((k + 1) / 2))
+        # The first three dimensions are the part's own field: the stored target moved out of its region.
+        own = np.clip(stored.own_descriptors(part, descriptor[on]), 0, 1)
+        np.testing.assert_allclose(target[on][:, :3], own, atol=1e-6)
+        assert stored.parts[k].scale < 0.5  # ... which the dataset's corners layout shrank
+    np.testing.assert_array_equal(target[~mask], np.broadcast_to(space.background, target[~mask].shape))
+
+
+def test_identity_layout_network_loads_for_either_part(bin_data, identity_net, multi_part_net, tmp_path):
+    from don_gym.agents import BinAxisGraspAgent
+    from don_gym.checkpoints import checkpoint_part_space
+    from don_gym.sim.bin_env import BinPickEnv
+
+    metadata = read_checkpoint_metadata(identity_net)
+    space = checkpoint_part_space(metadata)
+    assert (metadata.descriptor_dim, space.layout, space.dim, space.field_dim) == (4, "identity", 4, 3)
+    rgb = bin_data.image(0, 0, "rgb")
+    for k, name in enumerate(("toolcap", "shaft")):
+        part = load_object(name)
+        source = load_descriptor_source(identity_net, part)
+        assert source.descriptor_dim == 4 and source.descriptor_image({"rgb": rgb}).shape == (48, 64, 4)
+        assert source.descriptor_scale == 1.0  # every part keeps its field at full scale
+        descriptors = source.field.vertex_descriptors
+        np.testing.assert_array_equal(descriptors[:, 3], np.float32((k + 1) / 2))
+        np.testing.assert_allclose(descriptors[:, :3], load_descriptor_source("oracle", part).field.vertex_descriptors)
+        env = BinPickEnv(parts=PARTS, target=name, image_size=(64, 48))
+        try:
+            obs, info = env.reset(seed=1)
+            agent = BinAxisGraspAgent(env, model=identity_net)
+            assert isinstance(agent.estimates(obs, info), list)  # runs on the 4-channel image (2 steps find none)
+            corners = BinAxisGraspAgent(env, model=multi_part_net)
+        finally:
+            env.close()
+        # The axis ends' reference descriptors: in the part's identity, as far apart as in its own field, which
+        # is 1 / scale (2.3 for two parts in D = 3) times as far as in the dataset's corners layout.
+        reference = agent.reference_descriptors
+        assert reference.shape == (2, 4) and np.all(reference[:, 3] == np.float32((k + 1) / 2))
+        ratio = np.linalg.norm(reference[0] - reference[1]) / np.linalg.norm(
+            corners.reference_descriptors[0] - corners.reference_descriptors[1]
+        )
+        assert ratio == pytest.approx(1 / load_part_space(bin_data).parts[k].scale, rel=1e-4)
+    out = tmp_path / "eval"
+    argv = ["evaluate", "--data", str(bin_data.root), "--models", identity_net, "--points", "2", "--no-progress"]
+    assert main([*argv, "--out", str(out)]) == 0
+    for name in ("toolcap", "shaft"):
+        report = json.loads((out / name / "tracking.json").read_text())
+        assert report["object"] == name and identity_net in report["methods"]
+
+
+@pytest.mark.parametrize(
+    "method, expected",
+    [("supervised-mask", "does not support supervised-mask"), ("self-supervised", "is for the supervised methods")],
+)
+def test_part_layout_refusals_are_one_line(bin_data, tmp_path, capsys, method, expected):
+    out = tmp_path / "run"
+    argv = ["train", "--method", method, "--data", str(bin_data.root), "--out", str(out), "--part-layout", "identity"]
+    assert main([*argv, "--steps", "1", "--device", "cpu"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert expected in err and len(err.splitlines()) == 1
+    assert not out.exists()
+    with pytest.raises(DatasetError, match="does not support the mask variant"):
+        BinTargets(bin_data, "mask", layout="identity")
+    config = TrainConfig(method="supervised-edge", data=str(bin_data.root), out=str(out), part_layout="corners")
+    with pytest.raises(DonGymError, match=r"part_layout 'corners' is unknown; expected one of \['auto', 'identity'\]"):
+        train(config, progress=False)
     assert not out.exists()
 
 

@@ -333,3 +333,82 @@ def test_rendering_bad_input_is_refused_naming_it(scene):
         render_instances([], space.background, INTRINSICS)
     with pytest.raises(DonGymError, match="instance_ids"):
         make_instances_target("edge", mapped[0][None, :10], np.zeros((1, 10)), space.background)
+
+
+# --- the identity layout: whole fields plus one dimension for part identity ----------------------------
+
+
+@pytest.mark.parametrize("count", [2, 3, 4])
+def test_identity_layout_keeps_every_field_whole_and_parts_apart(parts, count):
+    models, fields = parts
+    arrays = [f.vertex_descriptors for f in fields] + [asymmetric_field(), asymmetric_field()[::-1]]
+    names = [m.name for m in models] + ["bracket", "flange"]
+    space = build_part_space(names[:count], arrays[:count], layout="identity")
+    assert space.layout == "identity" and (space.field_dim, space.dim) == (3, 4)
+    check_separation(space, arrays[:count])
+    between, to_background = space.region_distances()
+    np.testing.assert_allclose(between[0], np.arange(count) / count)  # 1/K apart per step of identity
+    np.testing.assert_allclose(to_background.min(), 1 / count)
+    assert between[~np.eye(count, dtype=bool)].min() >= space.gap
+    assert space.background[-1] == 0
+    for k, own in enumerate(arrays[:count]):
+        assert space.parts[k].scale == 1.0
+        mapped = space.map_descriptors(k, own)
+        assert mapped.shape == (len(own), 4)
+        np.testing.assert_array_equal(mapped[:, :3], own.astype(np.float32))  # the part's field, unscaled
+        np.testing.assert_array_equal(mapped[:, 3], np.float32((k + 1) / count))
+        np.testing.assert_allclose(space.own_descriptors(k, mapped), own, rtol=0, atol=DESCRIPTOR_ATOL)
+    # Images: (H, W, 3) own descriptors in, (H, W, 4) out, the background off every part.
+    image = np.stack([arrays[0][:6], arrays[1][:6]]).reshape(2, 6, 3)
+    labels = np.array([[1] * 6, [0, 0, 2, 2, 2, 2]])
+    out = space.map_descriptor_image(image, labels)
+    assert out.shape == (2, 6, 4)
+    np.testing.assert_array_equal(out[1, :2], np.tile(space.background, (2, 1)))
+    np.testing.assert_array_equal(out[0], space.map_descriptors(0, image[0]))
+
+
+def test_identity_layout_record_and_format_1_records(parts):
+    models, fields = parts
+    space = part_space_for(models, fields, layout="identity")
+    record = json.loads(json.dumps(space.to_dict()))
+    assert (record["format"], record["field_dim"], record["layout"]) == (2, 3, "identity")
+    back = PartSpace.from_dict(record)
+    assert (back.layout, back.dim, back.field_dim) == ("identity", 4, 3)
+    np.testing.assert_array_equal(back.background, space.background)
+    np.testing.assert_array_equal(
+        back.map_descriptors(1, fields[1].vertex_descriptors), space.map_descriptors(1, fields[1].vertex_descriptors)
+    )
+    for broken, what in [
+        ({**record, "field_dim": 4}, "field_dim 4"),
+        ({k: v for k, v in record.items() if k != "field_dim"}, "field_dim"),
+        ({**record, "format": 1}, "field_dim 4 with layout 'identity'"),
+        ({**record, "format": 3}, "format 3"),
+    ]:
+        with pytest.raises(DonGymError, match=f"checkpoint x.pt.*{what}"):
+            PartSpace.from_dict(broken, source="checkpoint x.pt")
+    # The other layouts are written as format 1, as every existing dataset and checkpoint holds them, and a
+    # format-1 record reads as before: the fields have the space's D.
+    corners = part_space_for(models, fields)
+    old = corners.to_dict()
+    assert old["format"] == 1 and "field_dim" not in old
+    assert list(old) == ["format", "layout", "gap", "mask_dim", "background", "parts"]
+    back = PartSpace.from_dict(old)
+    assert back.field_dim == back.dim == 3 and back.layout == "corners"
+    assert back.to_dict() == old
+
+
+def test_identity_layout_refusals_are_one_line():
+    field = np.random.default_rng(0).random((20, 3))
+    refusals = [
+        (dict(names=["a"], fields=[field]), "at least 2 parts"),
+        (dict(names=list("abcde"), fields=[field] * 5), "1/K = 0.200 .* less than gap=0.25; at most 4 parts"),
+        (dict(names=list("abc"), fields=[field] * 3, gap=0.4), "less than gap=0.4; at most 2 parts"),
+        (dict(names=["a", "b"], fields=[field] * 2, mask_dim=-1), "mask variant is not supported"),
+    ]
+    for kwargs, message in refusals:
+        with pytest.raises(DonGymError, match=message) as refused:
+            build_part_space(**kwargs, layout="identity")
+        assert "\n" not in str(refused.value)
+    with pytest.raises(DonGymError, match=r"layout='grid': expected one of \['auto', 'identity'\]"):
+        build_part_space(["a", "b"], [field] * 2, layout="grid")
+    assert build_part_space(list("abcd"), [field] * 4, layout="identity").region_distances()[0][0, 1] == 0.25

@@ -206,6 +206,14 @@ def test_cuda_without_a_gpu_is_one_line(tiny_dataset: str, tmp_path: Path, capsy
     assert not (tmp_path / "run").exists()
 
 
+def test_part_layout_identity_on_a_dataset_of_one_part_is_one_line(tiny_dataset: str, tmp_path: Path, capsys) -> None:
+    argv = ["train", "--method", "supervised-edge", "--data", tiny_dataset, "--out", str(tmp_path / "run")]
+    assert cli_main([*argv, "--part-layout", "identity", "--steps", "1", "--device", "cpu"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "part layout 'identity' (--part-layout) is for bin datasets of several parts" in err, err
+    assert len(err.splitlines()) == 1 and not (tmp_path / "run").exists()
+
+
 def test_out_that_is_a_file_and_failed_writes(tiny_dataset: str, tmp_path: Path, monkeypatch, capsys) -> None:
     (tmp_path / "file").write_text("not a run")
     with pytest.raises(DonGymError, match="is a file"):

@@ -86,6 +86,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default="auto",
         help="torch.distributed backend under torchrun: auto (nccl on GPUs, gloo on CPUs), nccl or gloo",
     )
+    parser.add_argument(
+        "--part-layout",
+        default="auto",
+        choices=["auto", "identity"],
+        help="bin datasets of several parts, supervised and supervised-edge only: the descriptor space the network "
+        "learns. auto = the dataset's (every part's field shrunk into a region of its own, same D); identity = "
+        "every part's whole field plus one output channel for part identity (D + 1 channels), so a part's "
+        "descriptors stay as far apart as in a single-part network; use it when the parts' shrunk regions are "
+        "too small for the network's noise (docs/background.md, 'Several parts in one descriptor space')",
+    )
     parser.add_argument("--resume", action="store_true", help="continue the run in --out")
     parser.set_defaults(run=run)
 
@@ -121,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
         workers=args.workers,
         precision=args.precision,
         backend=args.backend,
+        part_layout=args.part_layout,
     )
     launch = launch_environment()
     try:

@@ -3,8 +3,9 @@
 Each part's optimal descriptors (:class:`~don_gym.descriptors.DescriptorField`, every dimension in
 [0, 1]) are mapped by a uniform scale and a shift into a cube of their own inside the unit cube, the
 cubes at least ``gap`` apart, and the background descriptor put on a corner of the unit cube at least
-``gap`` from every cube. The construction, the separation it guarantees and what it costs the
-resolution within a part are in docs/background.md, "Several parts in one descriptor space".
+``gap`` from every cube. The ``"identity"`` layout instead keeps every part's field whole and appends
+one dimension that says which part a descriptor is on. The constructions, the separation they guarantee
+and what they cost are in docs/background.md, "Several parts in one descriptor space".
 """
 
 from __future__ import annotations
@@ -25,10 +26,17 @@ from don_gym.objects import ObjectModel, ShapeSignature
 #: units; the unit cube has side 1). A modelling choice: a quarter of the cube's side, which leaves two
 #: parts in D = 3 dimensions 43% of their single-part scale and three or four parts 41%.
 DEFAULT_PART_GAP = 0.25
-#: Version of :meth:`PartSpace.to_dict`'s layout.
-PART_SPACE_FORMAT = 1
-#: Layouts :func:`build_part_space` chooses from (docs/background.md, "Several parts in one descriptor space").
-LAYOUTS = ("single", "corners", "grid")
+#: Newest version of :meth:`PartSpace.to_dict`'s record that :meth:`PartSpace.from_dict` reads. Version 2 adds
+#: ``field_dim`` (the parts' own fields' D, one less than the space's with the ``"identity"`` layout); a space
+#: whose fields have the space's D is written as version 1, as before version 2 existed.
+PART_SPACE_FORMAT = 2
+#: Layouts of a :class:`PartSpace` (docs/background.md, "Several parts in one descriptor space"):
+#: :func:`build_part_space` chooses among the first three (``layout="auto"``); ``"identity"`` is asked for.
+LAYOUTS = ("single", "corners", "grid", "identity")
+#: The layout that appends one part-identity dimension to the parts' own fields.
+IDENTITY_LAYOUT = "identity"
+#: Values of :func:`build_part_space`'s ``layout`` argument.
+LAYOUT_CHOICES = ("auto", IDENTITY_LAYOUT)
 
 
 @dataclass(frozen=True)
@@ -39,7 +47,8 @@ class PartRegion:
         name: the part's name (:func:`don_gym.objects.part_name`).
         signature: the part's :class:`~don_gym.objects.ShapeSignature`, or None when not known.
         scale: factor applied to the part's own descriptors in the separated dimensions (0 < scale <= 1).
-        offset: (D,) shift added after scaling; 0 in the mask dimension, which passes through unchanged.
+        offset: (D,) shift added after scaling, in the space's D dimensions; 0 in the mask dimension, which
+            passes through unchanged; with the ``"identity"`` layout, the part's identity coordinate last.
     """
 
     name: str
@@ -57,16 +66,19 @@ class PartRegion:
 class PartSpace:
     """A descriptor space shared by several parts: every part's region and the background.
 
-    Part ``i``'s descriptor ``d`` (its own field's value, in [0, 1]^D) is ``scale_i * d + offset_i`` in
-    the separated dimensions (all but ``mask_dim``) and ``d`` unchanged in ``mask_dim``. Its region is the
-    image of the unit cube, the box ``[offset_i, offset_i + scale_i]`` in the separated dimensions.
+    Part ``i``'s descriptor ``d`` (its own field's value, in [0, 1]^F, F = :attr:`field_dim`) is
+    ``scale_i * d + offset_i`` in the separated dimensions (all but ``mask_dim``) and ``d`` unchanged in
+    ``mask_dim``. Its region is the image of the unit cube, the box ``[offset_i, offset_i + scale_i]`` in the
+    separated dimensions. With the ``"identity"`` layout the space has one dimension more than the fields
+    (D = F + 1): the fields' F dimensions come first, each part's at scale 1, and the last holds
+    ``offset_i``'s last entry, the part's identity coordinate, for every descriptor of part ``i``.
 
     Attributes:
         parts: one :class:`PartRegion` per part, in the order given to :func:`build_part_space`; a
             part's index here plus 1 is its label in part images (0 = background).
         background: (D,) float32 descriptor of pixels off every part.
         gap: the separation guaranteed between regions and from the background (descriptor units).
-        layout: ``"single"``, ``"corners"`` or ``"grid"`` (:data:`LAYOUTS`).
+        layout: ``"single"``, ``"corners"``, ``"grid"`` or ``"identity"`` (:data:`LAYOUTS`).
         mask_dim: the dimension the ``"mask"`` target variant replaces, left out of the separation; None
             when every dimension is separated.
     """
@@ -84,8 +96,13 @@ class PartSpace:
 
     @property
     def dim(self) -> int:
-        """D, the number of descriptor dimensions."""
+        """D, the number of descriptor dimensions of the space (a network trained in it outputs D channels)."""
         return int(self.background.shape[0])
+
+    @property
+    def field_dim(self) -> int:
+        """F, the number of dimensions of the parts' own fields: D, or D - 1 with the ``"identity"`` layout."""
+        return self.dim - 1 if self.layout == IDENTITY_LAYOUT else self.dim
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -111,13 +128,15 @@ class PartSpace:
 
     def region_bounds(self, part: int | str) -> tuple[np.ndarray, np.ndarray]:
         """``(low, high)``, (D,) each: the box holding every descriptor of ``part`` in this space (the
-        mask dimension spans [0, 1])."""
+        mask dimension spans [0, 1]; the identity dimension is the part's identity coordinate alone)."""
         region = self.parts[self.index(part)]
         low = np.zeros(self.dim)
         high = np.ones(self.dim)
         dims = self.separated_dims
+        # The unit cube's extent per dimension of the space: 0 along dimensions the fields do not have.
+        extent = (np.arange(self.dim) < self.field_dim).astype(np.float64)
         low[dims] = region.offset[dims]
-        high[dims] = region.offset[dims] + region.scale
+        high[dims] = region.offset[dims] + region.scale * extent[dims]
         return low, high
 
     def map_descriptors(self, part: int | str, descriptors: np.ndarray) -> np.ndarray:
@@ -125,8 +144,8 @@ class PartSpace:
 
         Args:
             part: name or index of the part.
-            descriptors: (..., D) values of the part's own field (e.g. its (N, D) vertex descriptors or an
-                (H, W, D) image rendered from them), in [0, 1].
+            descriptors: (..., F) values of the part's own field (F = :attr:`field_dim`; e.g. its (N, F)
+                vertex descriptors or an (H, W, F) image rendered from them), in [0, 1].
 
         Returns:
             (..., D) float32. The map is affine, so it commutes with the barycentric interpolation of
@@ -134,18 +153,37 @@ class PartSpace:
         """
         region = self.parts[self.index(part)]
         values = np.asarray(descriptors, dtype=np.float64)
+        if values.ndim < 1 or values.shape[-1] != self.field_dim:
+            raise DonGymError(
+                f"descriptors of part {region.name!r}: expected (..., {self.field_dim}), got {values.shape}"
+            )
+        if self.field_dim == self.dim:
+            mapped = values.copy()
+        else:  # the identity dimension: 0 before the shift, so the part's identity coordinate after it
+            mapped = np.zeros((*values.shape[:-1], self.dim))
+            mapped[..., : self.field_dim] = values
+        dims = self.separated_dims
+        mapped[..., dims] = region.scale * mapped[..., dims] + region.offset[dims]
+        return mapped.astype(np.float32)
+
+    def own_descriptors(self, part: int | str, descriptors: np.ndarray) -> np.ndarray:
+        """The inverse of :meth:`map_descriptors`: (..., D) descriptors of ``part`` in this space back to
+        (..., F) values of its own field, float64 (not clipped: values off the part's region map outside
+        [0, 1])."""
+        region = self.parts[self.index(part)]
+        values = np.array(descriptors, dtype=np.float64)
         if values.ndim < 1 or values.shape[-1] != self.dim:
             raise DonGymError(f"descriptors of part {region.name!r}: expected (..., {self.dim}), got {values.shape}")
-        mapped = values.copy()
         dims = self.separated_dims
-        mapped[..., dims] = region.scale * values[..., dims] + region.offset[dims]
-        return mapped.astype(np.float32)
+        values[..., dims] = (values[..., dims] - region.offset[dims]) / region.scale
+        return values[..., : self.field_dim]
 
     def map_descriptor_image(self, descriptor_image: np.ndarray, part_image: np.ndarray) -> np.ndarray:
         """Pixels of several parts' own descriptors moved into their regions, background elsewhere.
 
         Args:
-            descriptor_image: (H, W, D) each pixel holding the descriptor of its part's own field.
+            descriptor_image: (H, W, F) each pixel holding the descriptor of its part's own field
+                (F = :attr:`field_dim`).
             part_image: (H, W) int, the part's index in :attr:`parts` plus 1 per pixel; 0 = background.
 
         Returns:
@@ -154,13 +192,13 @@ class PartSpace:
         """
         image = np.asarray(descriptor_image)
         labels = np.asarray(part_image)
-        if image.ndim != 3 or image.shape[2] != self.dim:
-            raise DonGymError(f"descriptor_image: expected (H, W, {self.dim}), got shape {image.shape}")
+        if image.ndim != 3 or image.shape[2] != self.field_dim:
+            raise DonGymError(f"descriptor_image: expected (H, W, {self.field_dim}), got shape {image.shape}")
         if labels.shape != image.shape[:2] or not np.issubdtype(labels.dtype, np.integer):
             raise DonGymError(f"part_image: expected integer labels of shape {image.shape[:2]}, got {labels.shape}")
         if labels.size and (labels.min() < 0 or labels.max() > len(self.parts)):
             raise DonGymError(f"part_image: labels must lie in 0..{len(self.parts)} (0 = background)")
-        out = np.empty(image.shape, dtype=np.float32)
+        out = np.empty((*image.shape[:2], self.dim), dtype=np.float32)
         out[:] = self.background
         for i in range(len(self.parts)):
             on = labels == i + 1
@@ -207,9 +245,13 @@ class PartSpace:
         return between, to_background
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready record of the space (for a checkpoint's metadata); :meth:`from_dict` reads it."""
+        """JSON-ready record of the space (for a checkpoint's metadata); :meth:`from_dict` reads it. A space
+        whose fields have its own D is written in format 1, byte for byte as before format 2 existed; the
+        ``"identity"`` layout in format 2, which adds ``field_dim``."""
+        extra = {} if self.field_dim == self.dim else {"field_dim": self.field_dim}
         return {
-            "format": PART_SPACE_FORMAT,
+            "format": 1 if not extra else PART_SPACE_FORMAT,
+            **extra,
             "layout": self.layout,
             "gap": float(self.gap),
             "mask_dim": self.mask_dim,
@@ -229,8 +271,8 @@ class PartSpace:
     def from_dict(cls, data: Mapping[str, Any], source: str = "part space") -> PartSpace:
         """Read :meth:`to_dict`'s record; DonGymError naming ``source`` when it is not one."""
         try:
-            if data["format"] != PART_SPACE_FORMAT:
-                raise ValueError(f"format {data['format']!r}, expected {PART_SPACE_FORMAT}")
+            if data["format"] not in range(1, PART_SPACE_FORMAT + 1) or isinstance(data["format"], bool):
+                raise ValueError(f"format {data['format']!r}, expected 1 to {PART_SPACE_FORMAT}")
             background = np.asarray(data["background"], dtype=np.float32)
             parts = tuple(
                 PartRegion(
@@ -245,9 +287,15 @@ class PartSpace:
             space = cls(
                 parts, background, float(data["gap"]), str(data["layout"]), None if mask_dim is None else int(mask_dim)
             )
+            # Format 1 has no field_dim: its fields have the space's D (no layout then appended a dimension).
+            field_dim = int(data["field_dim"]) if data["format"] >= 2 else space.dim
         except (KeyError, TypeError, ValueError) as exc:
             raise DonGymError(f"{source}: not a part space record ({type(exc).__name__}: {exc})") from exc
         problem = _space_problem(space)
+        if problem is None and field_dim != space.field_dim:
+            problem = (
+                f"field_dim {field_dim} with layout {space.layout!r} and D={space.dim}; expected {space.field_dim}"
+            )
         if problem:
             raise DonGymError(f"{source}: {problem}")
         return space
@@ -271,6 +319,11 @@ def _space_problem(space: PartSpace) -> str | None:
                 f"part {part.name!r} has scale {part.scale} and offset shape {part.offset.shape}; "
                 f"expected a scale in (0, 1] and a finite ({dim},) offset"
             )
+    if space.layout == IDENTITY_LAYOUT:
+        if dim < 2 or space.mask_dim is not None:
+            return f"layout 'identity' with D={dim} and mask_dim {space.mask_dim}; expected D >= 2 and no mask_dim"
+        if any(part.scale != 1 or np.any(part.offset[:-1] != 0) for part in space.parts):
+            return "layout 'identity' needs every part at scale 1 with offset 0 in the field's dimensions"
     return None
 
 
@@ -348,6 +401,7 @@ def build_part_space(
     signatures: Sequence[ShapeSignature | None] | None = None,
     gap: float = DEFAULT_PART_GAP,
     mask_dim: int | None = None,
+    layout: str = "auto",
 ) -> PartSpace:
     """Lay several parts' descriptors out in one space, each in a region of its own.
 
@@ -367,6 +421,12 @@ def build_part_space(
     One part (K = 1) gets the single-part space unchanged: scale 1 and its own background (the point
     of the unit cube furthest from its descriptors), so a one-part network is trained as before.
 
+    ``layout="identity"`` (K >= 2, no ``mask_dim``) keeps every part's field whole instead: scale 1 and
+    offset 0 in the fields' D dimensions, and one dimension appended (the space has D + 1) holding the
+    part's identity, ``(i + 1) / K`` for part i and 0 for the background, whose other coordinates are the
+    point of the unit cube furthest from every part's descriptors. Two parts' regions are then at least
+    1/K apart and the background at least 1/K from every region; 1/K below ``gap`` is refused.
+
     Args:
         names: K distinct part names (:attr:`don_gym.objects.ObjectModel.name`).
         fields: K arrays (N_i, D) of each part's own optimal vertex descriptors in [0, 1], one D for all.
@@ -375,12 +435,18 @@ def build_part_space(
         mask_dim: the dimension the ``"mask"`` target variant replaces by the mask channel; it is left
             out of the separation (passed through unchanged, 0 in the background), as only the other
             dimensions tell parts apart in that variant. None: separate in all D dimensions.
+        layout: ``"auto"`` (``"single"``, ``"corners"`` or ``"grid"``, as above) or ``"identity"``
+            (:data:`LAYOUT_CHOICES`).
 
     Returns:
         A :class:`PartSpace`.
     """
+    if layout not in LAYOUT_CHOICES:
+        raise DonGymError(f"layout={layout!r}: expected one of {list(LAYOUT_CHOICES)}")
     names, arrays, signatures = _as_part_inputs(names, fields, signatures)
     gap = _check_gap(gap)
+    if layout == IDENTITY_LAYOUT:
+        return _identity_space(names, arrays, signatures, gap, mask_dim)
     dim = arrays[0].shape[1]
     if mask_dim is not None:
         if isinstance(mask_dim, bool) or not isinstance(mask_dim, (int, np.integer)) or not -dim <= mask_dim < dim:
@@ -434,11 +500,47 @@ def build_part_space(
     return PartSpace(tuple(regions), background, gap, layout, mask_dim)
 
 
+def _identity_space(
+    names: list[str],
+    arrays: list[np.ndarray],
+    signatures: list[ShapeSignature | None],
+    gap: float,
+    mask_dim: int | None,
+) -> PartSpace:
+    """:func:`build_part_space`'s ``"identity"`` layout, for checked inputs."""
+    n_parts, dim = len(names), arrays[0].shape[1]
+    if mask_dim is not None:
+        raise DonGymError(
+            f"layout='identity' with mask_dim={mask_dim}: the mask variant is not supported with the identity "
+            "layout; use layout='auto'"
+        )
+    if n_parts < 2:
+        raise DonGymError(
+            f"layout='identity' needs at least 2 parts, got {n_parts} ({names[0]!r}); a single part keeps its "
+            "own space (layout='auto')"
+        )
+    if 1.0 / n_parts < gap:
+        raise DonGymError(
+            f"layout='identity': {n_parts} parts are 1/K = {1.0 / n_parts:.3f} apart along the identity "
+            f"dimension, less than gap={gap}; at most {math.floor(1.0 / gap + 1e-9)} parts fit with this gap"
+        )
+    background = np.zeros(dim + 1, dtype=np.float32)
+    # Identity 0 already keeps the background 1/K from every part; in the fields' dimensions it is put where
+    # a single part's background is, furthest from every part's descriptors, for what margin that adds.
+    background[:dim] = background_descriptor(np.concatenate(arrays))
+    regions = [
+        PartRegion(name, signature, 1.0, np.r_[np.zeros(dim), (k + 1) / n_parts])
+        for k, (name, signature) in enumerate(zip(names, signatures, strict=True))
+    ]
+    return PartSpace(tuple(regions), background, gap, IDENTITY_LAYOUT, None)
+
+
 def part_space_for(
     models: Sequence[ObjectModel],
     fields: Sequence[DescriptorField],
     gap: float = DEFAULT_PART_GAP,
     mask_dim: int | None = None,
+    layout: str = "auto",
 ) -> PartSpace:
     """:func:`build_part_space` for object models and their fields: names and shape signatures from
     the models, vertex descriptors from the fields (checked to be each model's, by mesh hash)."""
@@ -457,4 +559,5 @@ def part_space_for(
         [m.shape_signature for m in models],
         gap=gap,
         mask_dim=mask_dim,
+        layout=layout,
     )
