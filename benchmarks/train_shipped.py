@@ -64,8 +64,8 @@ BACKGROUND_CROPS = 0.5
 # decoder of resnet-lite-fine resolves the silhouette at stride 2.
 ARCH = {"supervised-edge": "resnet-lite", "supervised-mask": "resnet-lite-fine", "self-supervised": "resnet-lite"}
 TABLE_COLUMNS = (
-    "object", "method", "arch", "scenes", "data", "bg crops", "steps", "minutes", "images/s", "final loss", "MB",
-    "commit",
+    "object", "method", "arch", "scenes", "data", "bg crops", "steps", "lr decay every", "minutes", "images/s",
+    "final loss", "MB", "commit",
 )  # fmt: skip
 
 
@@ -113,6 +113,12 @@ def main() -> None:
         "--crop", type=parse_size, default=None, help="training crop WIDTHxHEIGHT (default: per object, see CROPS)"
     )
     parser.add_argument("--steps", type=int, default=6000)
+    parser.add_argument(
+        "--lr-decay-every",
+        type=int,
+        default=250,
+        help="steps between learning-rate decays by x0.9 (scale it with --steps: 750 for 18000)",
+    )
     parser.add_argument(
         "--background-crops",
         type=float,
@@ -173,6 +179,7 @@ def main() -> None:
                     data=str(data),
                     out=str(run),
                     steps=args.steps,
+                    lr_decay_every=args.lr_decay_every,
                     arch=archs[method],
                     batch_size=args.batch_size,
                     seed=0,
@@ -192,6 +199,7 @@ def main() -> None:
                 "data": data_description(args.frames, args.backgrounds, args.distractors, args.lighting),
                 "bg crops": f"{args.background_crops:g}",
                 "steps": str(args.steps),
+                "lr decay every": str(args.lr_decay_every),
                 "minutes": "n/a" if result.seconds is None else f"{result.seconds / 60:.1f}",
                 "images/s": "n/a" if result.images_per_second is None else f"{result.images_per_second:.1f}",
                 "final loss": f"{result.final_loss:.4g}",
@@ -219,11 +227,11 @@ def main() -> None:
 distractors, light: docs/background.md, "Training data"), {width}x{height}, sensor `d435`, TinyRenderer, seed 0.
 Training: the row's network arch, batch {args.batch_size} (images, or image pairs for self-supervised),
 {crop_width}x{crop_height} crops (the row's bg crops share anywhere in the frame, the rest object-centred), Adam lr
-1e-3 x0.9 every 250 steps, seed 0, {args.threads} torch thread(s), {args.workers} loader worker(s). Final loss = mean
-of the last 5% of steps (the two methods' losses are on different scales and not comparable with each other).
-Minutes and images/s add up every session of a resumed run; n/a marks a run resumed from a state saved before
-don_gym recorded them. Each row names the commit its network was recorded at; a row from an earlier run of this
-script is kept while its network is still the shipped one.
+1e-3 x0.9 every "lr decay every" steps, seed 0, {args.threads} torch thread(s), {args.workers} loader worker(s).
+Final loss = mean of the last 5% of steps (the two methods' losses are on different scales and not comparable
+with each other). Minutes and images/s add up every session of a resumed run; n/a marks a run resumed from a
+state saved before don_gym recorded them. Each row names the commit its network was recorded at; a row from an
+earlier run of this script is kept while its network is still the shipped one.
 
 | {" | ".join(TABLE_COLUMNS)} |
 |{"---|" * len(TABLE_COLUMNS)}
@@ -276,6 +284,8 @@ def recorded_rows(section: str, path: Path = RESULTS_PATH) -> dict[str, dict[str
             row["scenes"] = "n/a" if scenes is None else str(scenes)
         if "arch" not in row:
             row["arch"] = "n/a" if metadata is None else metadata.arch
+        # Rows recorded before the column: every shipped network until then decayed its lr every 250 steps.
+        row.setdefault("lr decay every", "250")
         row.setdefault("commit", commit_line.group(1).strip() if commit_line else "not recorded")
         rows[row["method"]] = row
     return rows

@@ -206,6 +206,20 @@ def test_cuda_without_a_gpu_is_one_line(tiny_dataset: str, tmp_path: Path, capsy
     assert not (tmp_path / "run").exists()
 
 
+def test_lr_decay_every_from_the_cli(tiny_dataset: str, tmp_path: Path, capsys) -> None:
+    """--lr-decay-every reaches the schedule: the lr column (the rate after the step) drops by x0.9 every 2 steps,
+    and 0 is refused in one line."""
+    argv = ["train", "--method", "supervised", "--data", tiny_dataset, "--batch-size", "1", "--crop", "32x32",
+            "--lr", "1e-3", "--threads", "1", "--workers", "0", "--device", "cpu"]  # fmt: skip
+    assert cli_main([*argv, "--out", str(tmp_path / "run"), "--steps", "5", "--lr-decay-every", "2"]) == 0
+    lrs = [float(x) for x in _columns(tmp_path / "run")["lr"]]
+    assert np.allclose(lrs, [1e-3, 9e-4, 9e-4, 8.1e-4, 8.1e-4], rtol=1e-3), lrs
+    capsys.readouterr()
+    assert cli_main([*argv, "--out", str(tmp_path / "bad"), "--steps", "1", "--lr-decay-every", "0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "lr_decay_every" in err and not (tmp_path / "bad").exists(), err
+
+
 def test_part_layout_identity_on_a_dataset_of_one_part_is_one_line(tiny_dataset: str, tmp_path: Path, capsys) -> None:
     argv = ["train", "--method", "supervised-edge", "--data", tiny_dataset, "--out", str(tmp_path / "run")]
     assert cli_main([*argv, "--part-layout", "identity", "--steps", "1", "--device", "cpu"]) == 2

@@ -41,6 +41,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--lr", type=float, default=None, help="Adam learning rate (default: 1e-3 resnet-lite*, 1e-4 else)"
     )
+    parser.add_argument(
+        "--lr-decay-every",
+        type=int,
+        default=250,
+        help="steps between learning-rate decays by x0.9; scale it with --steps to keep the schedule's shape",
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed for weights, data order and augmentation")
     parser.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints")
     parser.add_argument("--pretrained", default=None, help="local ImageNet weights (torchvision ResNet layout)")
@@ -120,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
         arch=args.arch,
         batch_size=args.batch_size,
         lr=args.lr,
+        lr_decay_every=args.lr_decay_every,
         seed=args.seed,
         checkpoint_every=args.checkpoint_every,
         pretrained_path=args.pretrained,
