@@ -114,8 +114,9 @@ def test_a_new_section_goes_after_the_named_one(tmp_path: Path) -> None:
 
 
 def test_shipped_table_keeps_the_rows_of_networks_not_retrained(tmp_path: Path) -> None:
-    """train_shipped.py's rows of an earlier run, in an older layout (no arch, scenes or commit cell) or the
-    current one, are read back with their own arch, scenes and commit."""
+    """train_shipped.py's rows of an earlier run, in an older layout (no arch, scenes, commit or lr decay cell;
+    every such network decayed its lr every 250 steps) or the current one, are read back with their own arch,
+    scenes, schedule and commit."""
     import train_shipped
 
     results = tmp_path / "RESULTS.md"
@@ -130,17 +131,17 @@ def test_shipped_table_keeps_the_rows_of_networks_not_retrained(tmp_path: Path) 
         "not-shipped": {
             "object": "shaft", "method": "not-shipped", "steps": "6000", "minutes": "80.8", "images/s": "9.9",
             "final loss": "0.067", "MB": "2.5", "scenes": "n/a", "arch": "n/a", "commit": commit, "data": "n/a",
-            "bg crops": "n/a",
+            "bg crops": "n/a", "lr decay every": "250",
         }
     }  # fmt: skip
     current = "| " + " | ".join(train_shipped.TABLE_COLUMNS) + " |\n|" + "---|" * len(train_shipped.TABLE_COLUMNS)
     data = "6 frames/scene, wide"
-    cells = f"shaft | supervised-edge | resnet-lite | 32 | {data} | 0.5 | 6000 | 40.0 | 20.0 | 0.05 | 2.6 | abc"
+    cells = f"shaft | supervised-edge | resnet-lite | 32 | {data} | 0.5 | 18000 | 750 | 40.0 | 20.0 | 0.05 | 2.6 | abc"
     current += f"\n| {cells} |"
     _results.record_section("shipped-shaft", "S", current, path=results)
     row = train_shipped.recorded_rows("shipped-shaft", path=results)["supervised-edge"]
     assert (row["arch"], row["scenes"], row["commit"], row["minutes"]) == ("resnet-lite", "32", "abc", "40.0")
-    assert (row["data"], row["bg crops"]) == (data, "0.5")
+    assert (row["data"], row["bg crops"], row["steps"], row["lr decay every"]) == (data, "0.5", "18000", "750")
     # A row of the older layout for a shipped network takes its arch from the network's metadata.
     _results.record_section("shipped-shaft", "S", old.replace("not-shipped", "supervised-mask"), path=results)
     mask = train_shipped.recorded_rows("shipped-shaft", path=results)["supervised-mask"]
