@@ -116,7 +116,7 @@ def main() -> None:
     parser.add_argument(
         "--lr-decay-every",
         type=int,
-        default=250,
+        default=TrainConfig.lr_decay_every,
         help="steps between learning-rate decays by x0.9 (scale it with --steps: 750 for 18000)",
     )
     parser.add_argument(
