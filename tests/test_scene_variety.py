@@ -38,6 +38,16 @@ def test_every_backdrop_family_draws_a_reproducible_texture() -> None:
     for family, texture in seen.items():
         spread = float(texture.reshape(-1, 3).std(axis=0).max())
         assert (spread == 0.0) == (family == "plain"), family
+
+
+def test_mixed_backdrops_draw_the_classic_families_two_times_in_three() -> None:
+    rng = np.random.default_rng(0)
+    families = [backdrop_texture(rng, BACKDROP_SETS["mixed"], size_px=8)[1] for _ in range(3000)]
+    assert set(families) == set(BACKDROP_SETS["wide"])
+    classic_share = np.mean([family in BACKDROP_SETS["classic"] for family in families])
+    stripes_share = families.count("stripes") / len(families)
+    assert 0.63 < classic_share < 0.70  # half classic plus half of the nine's three classic: 2/3
+    assert 0.19 < stripes_share < 0.25  # 2/9, twice the wide set's 1/9
     classic = {backdrop_texture(np.random.default_rng(s), size_px=16)[1] for s in range(50)}
     assert classic == set(BACKDROP_SETS["classic"])
     with pytest.raises(DonGymError, match="backgrounds='gaudy'"):

@@ -53,9 +53,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--backgrounds",
         default="classic",
-        choices=["classic", "wide"],
-        help="backdrop texture families on the table and floor: classic (noise, stripes, checks) or wide (nine "
-        "families, docs/background.md)",
+        choices=["classic", "wide", "mixed"],
+        help="backdrop texture families on the table and floor: classic (noise, stripes, checks), wide (nine "
+        "families, docs/background.md) or mixed (half classic, half wide)",
     )
     parser.add_argument(
         "--distractors", type=int, default=0, help="coloured primitives placed on the table around the object per scene"

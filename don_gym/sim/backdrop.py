@@ -9,7 +9,9 @@ env's ``background="random"`` (:class:`~don_gym.sim.env.PickPlaceEnv`).
 
 Families (:data:`BACKDROP_SETS`): ``"classic"`` is the recorder's original three (smooth two-colour
 noise, stripes, checks); ``"wide"`` adds plain colours, gradients, many-colour noise, dots, scattered
-rectangles (printed clutter) and wood-like grain.
+rectangles (printed clutter) and wood-like grain; ``"mixed"`` draws half of its backdrops from the classic
+three and half from all nine, so that data with the wide variety still shows the classic families (the
+default scenes, and the env's ``background="random"``) twice as often as ``"wide"`` does.
 """
 
 from __future__ import annotations
@@ -32,6 +34,9 @@ BACKDROP_SETS: dict[str, tuple[str, ...]] = {
     "classic": ("noise", "stripes", "checks"),
     "wide": ("noise", "stripes", "checks", "plain", "gradient", "palette", "dots", "rectangles", "grain"),
 }
+# A family is drawn uniformly from the tuple, so repeating the classic three weights them: 12 of 18 entries
+# (2/3) are classic, which is half classic plus half drawn from all nine.
+BACKDROP_SETS["mixed"] = BACKDROP_SETS["classic"] * 3 + BACKDROP_SETS["wide"]
 #: Height of the floor under the table (m), seen past the table's edges.
 FLOOR_Z_M = -0.75
 

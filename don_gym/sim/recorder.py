@@ -86,7 +86,7 @@ class SceneRecorder:
         sensor: depth-sensor preset name or model for ``depth_m``.
         renderer: ``"tiny"`` or ``"egl"``.
         backgrounds: the set of backdrop texture families (:data:`~don_gym.sim.backdrop.BACKDROP_SETS`):
-            ``"classic"`` (the three above) or ``"wide"`` (nine families).
+            ``"classic"`` (the three above), ``"wide"`` (nine families) or ``"mixed"`` (half classic, half wide).
         distractors: coloured primitives placed on the table around the object per scene
             (:class:`~don_gym.sim.distractors.Distractors`), never touching it.
         lighting: ``"fixed"`` (the renderer's default light) or ``"random"`` (a light drawn per scene:
