@@ -42,6 +42,7 @@ from don_gym.descriptors import DescriptorField  # noqa: E402
 from don_gym.errors import DonGymError  # noqa: E402
 from don_gym.model import ARCHS, DEFAULT_ARCH  # noqa: E402
 from don_gym.objects import load_object  # noqa: E402
+from don_gym.sim.backdrop import BACKDROP_SETS  # noqa: E402
 from don_gym.train import TrainConfig, train  # noqa: E402
 from don_gym.zoo import SHIPPED_DIR  # noqa: E402
 
@@ -100,7 +101,7 @@ def main() -> None:
         "--scenes", type=int, default=None, help="scenes of each object's dataset (default: per object, see SCENES)"
     )
     parser.add_argument("--frames", type=int, default=FRAMES, help="camera frames per scene")
-    parser.add_argument("--backgrounds", choices=("classic", "wide", "mixed"), default=VARIETY["backgrounds"])
+    parser.add_argument("--backgrounds", choices=tuple(BACKDROP_SETS), default=VARIETY["backgrounds"])
     parser.add_argument("--distractors", type=int, default=VARIETY["distractors"])
     parser.add_argument("--lighting", choices=("fixed", "random"), default=VARIETY["lighting"])
     # 640x480 rather than 320x240: at the env's observation pose (0.45 m above the table) the toolcap spans

@@ -38,6 +38,10 @@ def test_every_backdrop_family_draws_a_reproducible_texture() -> None:
     for family, texture in seen.items():
         spread = float(texture.reshape(-1, 3).std(axis=0).max())
         assert (spread == 0.0) == (family == "plain"), family
+    classic = {backdrop_texture(np.random.default_rng(s), size_px=16)[1] for s in range(50)}
+    assert classic == set(BACKDROP_SETS["classic"])
+    with pytest.raises(DonGymError, match="backgrounds='gaudy'"):
+        check_backdrop_set("gaudy")
 
 
 def test_mixed_backdrops_draw_the_classic_families_two_times_in_three() -> None:
@@ -48,10 +52,15 @@ def test_mixed_backdrops_draw_the_classic_families_two_times_in_three() -> None:
     stripes_share = families.count("stripes") / len(families)
     assert 0.63 < classic_share < 0.70  # half classic plus half of the nine's three classic: 2/3
     assert 0.19 < stripes_share < 0.25  # 2/9, twice the wide set's 1/9
-    classic = {backdrop_texture(np.random.default_rng(s), size_px=16)[1] for s in range(50)}
-    assert classic == set(BACKDROP_SETS["classic"])
-    with pytest.raises(DonGymError, match="backgrounds='gaudy'"):
-        check_backdrop_set("gaudy")
+
+
+def test_the_cli_offers_every_backdrop_set() -> None:
+    """build-dataset lists its --backgrounds choices literally (no simulator import to parse arguments)."""
+    from don_gym.cli import build_parser
+
+    for name in BACKDROP_SETS:
+        args = build_parser().parse_args(["build-dataset", "--object", "toolcap", "--out", "x", "--backgrounds", name])
+        assert args.backgrounds == name
 
 
 @pytest.mark.parametrize(
