@@ -220,6 +220,15 @@ def test_lr_decay_every_from_the_cli(tiny_dataset: str, tmp_path: Path, capsys) 
     assert len(err.splitlines()) == 1 and "lr_decay_every" in err and not (tmp_path / "bad").exists(), err
 
 
+def test_train_cli_defaults_are_train_configs() -> None:
+    """The CLI lists its defaults literally (no torch import to parse arguments); they must be TrainConfig's."""
+    from don_gym.cli import build_parser
+
+    args = build_parser().parse_args(["train", "--method", "supervised", "--data", "d", "--out", "o"])
+    assert args.lr_decay_every == TrainConfig.lr_decay_every
+    assert args.checkpoint_every == TrainConfig.checkpoint_every
+
+
 def test_part_layout_identity_on_a_dataset_of_one_part_is_one_line(tiny_dataset: str, tmp_path: Path, capsys) -> None:
     argv = ["train", "--method", "supervised-edge", "--data", tiny_dataset, "--out", str(tmp_path / "run")]
     assert cli_main([*argv, "--part-layout", "identity", "--steps", "1", "--device", "cpu"]) == 2
