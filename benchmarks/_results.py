@@ -15,6 +15,7 @@ import re
 import shlex
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 RESULTS_PATH = Path(__file__).resolve().parent / "RESULTS.md"
@@ -112,6 +113,38 @@ def read_section(name: str, path: Path = RESULTS_PATH) -> str | None:
     """The text of the section ``name`` of RESULTS.md between its begin and end comments; None when absent."""
     match = _section_pattern(name).search(path.read_text()) if path.exists() else None
     return None if match is None else match.group(1)
+
+
+def kept_object_subsections(
+    name: str, objects: Sequence[str], measured: Sequence[str], path: Path = RESULTS_PATH
+) -> dict[str, str]:
+    """The markdown of each object in ``objects`` but not in ``measured`` that RESULTS.md's section ``name``
+    holds, by object: from its first ``### <object>`` heading to the next object's (or the section's end), with
+    a line naming the run that measured it (command, date, commit), so that a run of some objects can keep the
+    others' figures without passing them off as its own. A part kept before keeps its original line."""
+    text = read_section(name, path)
+    if text is None:
+        return {}
+    fields = {key: re.search(rf"^- {key}: (.+)$", text, re.M) for key in ("Command", "Date", "Commit")}
+    origin = {key: match.group(1).strip() if match else "not recorded" for key, match in fields.items()}
+    starts = {}
+    for object_name in objects:
+        heading = re.search(rf"^### {re.escape(object_name)}\b", text, re.M)
+        if heading is not None:
+            starts[object_name] = heading.start()
+    bounds = sorted(starts.values()) + [len(text)]
+    kept = {}
+    for object_name, start in starts.items():
+        if object_name in measured:
+            continue
+        part = text[start : bounds[bounds.index(start) + 1]].strip()
+        if f"*{object_name}: kept from " not in part:
+            part += (
+                f"\n\n*{object_name}: kept from the run of {origin['Date']} (commit {origin['Commit']}, "
+                f"{origin['Command']}); the run above measured {', '.join(measured)} only.*"
+            )
+        kept[object_name] = part
+    return kept
 
 
 def record_section(

@@ -33,7 +33,7 @@ from typing import Any
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _results import FIGURES, freeze_commit_description, record_section  # noqa: E402
+from _results import FIGURES, freeze_commit_description, kept_object_subsections, record_section  # noqa: E402
 
 from don_gym.build import build_evaluation_datasets  # noqa: E402
 from don_gym.evaluation import FRAMES_PER_SCENE, SCENES_PER_SEED, SPENT_SEEDS, SPLIT_SEEDS  # noqa: E402
@@ -150,7 +150,13 @@ def main() -> None:
     parser.add_argument("--scenes", type=int, default=SCENES_PER_SEED, help="scenes per seed of the split")
     parser.add_argument("--frames", type=int, default=FRAMES_PER_SCENE, help="frames per scene")
     parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--objects", nargs="+", default=list(OBJECTS), choices=OBJECTS)
+    parser.add_argument(
+        "--objects",
+        nargs="+",
+        default=list(OBJECTS),
+        choices=OBJECTS,
+        help="objects to measure; the sections keep the other objects' figures, marked with the run that made them",
+    )
     parser.add_argument(
         "--only",
         choices=("pose", "grasp"),
@@ -198,23 +204,34 @@ def main() -> None:
     if args.only != "grasp":
         run_pose(args, work, header, publish)
     if args.only != "pose":
+        publish_grasp = not args.quick and args.split == "test"
+        measured = {o: grasp_comparison(args, work, o) for o in args.objects}
         grasp_body = (
             "Each method's descriptors used twice: by the two-descriptor `AxisGraspAgent` (the paper's agent) and "
             "by `PoseGraspAgent` (`pose:` methods: a grasp along the axis of the 6D pose estimated with "
             "`don_gym.pose` from the same descriptor image and the D435 depth).\n\n"
-            + "\n\n".join(grasp_comparison(args, work, o) for o in args.objects)
+            + "\n\n".join(with_kept_objects("pose-grasp", measured, keep=publish_grasp))
         )
         print(grasp_body)
-        if not args.quick and args.split == "test":
+        if publish_grasp:
             record_section(
                 "pose-grasp", "Grasping from a 6D pose beside the two-descriptor agent", grasp_body, after="pose"
             )
 
 
+def with_kept_objects(section: str, measured: dict[str, str], keep: bool) -> list[str]:
+    """Each object's markdown in OBJECTS order: this run's where it measured the object, else (with ``keep``)
+    the one RESULTS.md's ``section`` holds, marked with the run that measured it; so ``--objects toolcap``
+    after retraining the toolcap's networks leaves the shaft's figures in the section."""
+    kept = kept_object_subsections(section, OBJECTS, list(measured)) if keep else {}
+    return [measured.get(o) or kept[o] for o in OBJECTS if o in measured or o in kept]
+
+
 def run_pose(args: argparse.Namespace, work: Path, header: str, publish: bool) -> None:
     """Section ``pose`` (``pose-dev``): every object's pose evaluation, printed and recorded."""
-    bodies = [run_object(args, work, o, publish) for o in args.objects]
-    body = header + "\n\n" + "\n\n".join(bodies)
+    section = "pose" if args.split == "test" else "pose-dev"
+    measured = {o: run_object(args, work, o, publish) for o in args.objects}
+    body = header + "\n\n" + "\n\n".join(with_kept_objects(section, measured, keep=not args.quick))
     print(body)
     if not args.quick:
         if args.split == "test":

@@ -168,3 +168,29 @@ def test_shipped_runs_trained_on_other_scenes_are_refused(tmp_path: Path) -> Non
     train_shipped.check_runs_match(tmp_path, "shaft", ["supervised-edge", "supervised-mask"], trained_on)
     with pytest.raises(DonGymError, match=rf"run_shaft_supervised-edge: a run on {trained_on} scenes, not the 7"):
         train_shipped.check_runs_match(tmp_path, "shaft", ["supervised-edge"], 7)
+
+
+def test_a_run_of_some_objects_keeps_the_others_marked_with_their_run(tmp_path: Path) -> None:
+    """bench_pose.py --objects toolcap (after retraining the toolcap's networks) keeps the shaft's figures, each
+    kept part naming the run that measured it, once, however many runs keep it."""
+    results = tmp_path / "RESULTS.md"
+    first = (
+        "Split: test.\n\n### toolcap, depth\n\n| a |\n\ntoolcap: 8 runs\n\n### shaft, depth\n\n| b |\n\nshaft: 8 runs"
+    )
+    _results.record_section("pose", "Pose", first, path=results)
+    date = _results.read_section("pose", results).split("- Date: ")[1].split("\n")[0]
+    kept = _results.kept_object_subsections("pose", ("toolcap", "shaft"), ["toolcap"], path=results)
+    assert list(kept) == ["shaft"]
+    assert kept["shaft"].startswith("### shaft, depth\n\n| b |\n\nshaft: 8 runs\n\n*shaft: kept from the run of")
+    assert date in kept["shaft"] and "measured toolcap only" in kept["shaft"] and "| a |" not in kept["shaft"]
+    # Kept again by a later run of the toolcap: still the first run's line, not a second one.
+    _results.record_section(
+        "pose", "Pose", "Split: test.\n\n### toolcap, depth\n\n| c |\n\n" + kept["shaft"], path=results
+    )
+    again = _results.kept_object_subsections("pose", ("toolcap", "shaft"), ["toolcap"], path=results)
+    assert again["shaft"] == kept["shaft"]
+    # The toolcap's part ends where the shaft's begins; a measured object or an absent section keeps nothing.
+    toolcap = _results.kept_object_subsections("pose", ("toolcap", "shaft"), ["shaft"], path=results)["toolcap"]
+    assert "| c |" in toolcap and "shaft" not in toolcap.split("*toolcap: kept")[0]
+    assert _results.kept_object_subsections("pose", ("toolcap", "shaft"), ["toolcap", "shaft"], path=results) == {}
+    assert _results.kept_object_subsections("absent", ("toolcap",), [], path=results) == {}
