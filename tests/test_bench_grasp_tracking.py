@@ -81,3 +81,25 @@ def test_claims_hold_on_separated_intervals_and_are_not_settled_on_overlapping_o
     assert "the intervals overlap" in blocks[bench_grasp.block("claim-a")]
     assert "Verdict: **not settled** (toolcap, shaft)." in blocks[bench_grasp.block("claim-b")]
     assert "Verdict: **holds** (toolcap, shaft)." in blocks[bench_grasp.block("claim-c")]
+
+
+def test_tracking_targets_name_each_supervised_network_met_or_missed() -> None:
+    """The shaft's supervised networks of the fixture (median mod symmetry about 3 mm, p99 under 8 mm, no far
+    match) meet its targets; a network with a far share over 0.5% or a p99 over the toolcap's 45 mm misses."""
+    block = bench_grasp.tracking_block("shaft", _summary("shaft", (1.2, 2.4)), "*source*")
+    assert "Targets of the supervised networks:" in block
+    for kind in ("supervised-edge", "supervised-mask"):
+        assert any(line.startswith(f"- shaft/{kind}: ") and line.endswith(": met") for line in block.splitlines())
+    assert "self-supervised:" not in block.split("Targets of the supervised networks:")[1]
+
+    def figures(p99_mm: float, far_pct: float) -> dict:
+        return {
+            "name": "toolcap/supervised-edge", "p50_sym_mm": 2.5, "p50_sym_ci": (2.0, 3.0), "p99_mm": p99_mm,
+            "p99_ci": (30.0, 60.0), "far_pct": far_pct, "far_pct_ci": (0.0, 1.0),
+        }  # fmt: skip
+
+    assert bench_grasp.tracking_targets("toolcap", {"supervised-edge": figures(44.0, 0.4)})[0].endswith(": met")
+    for p99_mm, far_pct in ((44.0, 0.59), (46.0, 0.4), (float("nan"), 0.0)):
+        line = bench_grasp.tracking_targets("toolcap", {"supervised-edge": figures(p99_mm, far_pct)})[0]
+        assert line.endswith(": MISSED") and "(target <= 45 mm)" in line and "(target <= 0.5 %)" in line
+    assert bench_grasp.tracking_targets("bracket", {"supervised-edge": figures(1.0, 0.0)}) == []
