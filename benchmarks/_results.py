@@ -115,6 +115,13 @@ def read_section(name: str, path: Path = RESULTS_PATH) -> str | None:
     return None if match is None else match.group(1)
 
 
+def section_origin(text: str) -> dict[str, str]:
+    """The ``Command``, ``Date`` and ``Commit`` lines of a section's text (:func:`read_section`), each
+    ``"not recorded"`` where the section has none."""
+    fields = {key: re.search(rf"^- {key}: (.+)$", text, re.M) for key in ("Command", "Date", "Commit")}
+    return {key: match.group(1).strip() if match else "not recorded" for key, match in fields.items()}
+
+
 def kept_object_subsections(
     name: str, objects: Sequence[str], measured: Sequence[str], path: Path = RESULTS_PATH
 ) -> dict[str, str]:
@@ -125,8 +132,7 @@ def kept_object_subsections(
     text = read_section(name, path)
     if text is None:
         return {}
-    fields = {key: re.search(rf"^- {key}: (.+)$", text, re.M) for key in ("Command", "Date", "Commit")}
-    origin = {key: match.group(1).strip() if match else "not recorded" for key, match in fields.items()}
+    origin = section_origin(text)
     starts = {}
     for object_name in objects:
         heading = re.search(rf"^### {re.escape(object_name)}\b", text, re.M)

@@ -24,7 +24,6 @@ computed here and checked against it; networks that have them are left as they a
 from __future__ import annotations
 
 import argparse
-import re
 import shutil
 import sys
 import tempfile
@@ -32,7 +31,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _results import RESULTS_PATH, commit_description, read_section, record_section  # noqa: E402
+from _results import RESULTS_PATH, commit_description, read_section, record_section, section_origin  # noqa: E402
 from check_shipped import record_regenerated  # noqa: E402
 
 from don_gym.build import DatasetConfig, build_dataset  # noqa: E402
@@ -270,7 +269,7 @@ def recorded_rows(section: str, path: Path = RESULTS_PATH) -> dict[str, dict[str
     text = read_section(section, path)
     if text is None:
         return {}
-    commit_line = re.search(r"^- Commit: (.+)$", text, re.M)
+    commit = section_origin(text)["Commit"]
     lines = [line.strip() for line in text.splitlines() if line.strip().startswith("|")]
     if len(lines) < 3:
         return {}
@@ -296,7 +295,7 @@ def recorded_rows(section: str, path: Path = RESULTS_PATH) -> dict[str, dict[str
             row["arch"] = "n/a" if metadata is None else metadata.arch
         # Rows recorded before the column: every shipped network until then decayed its lr every 250 steps.
         row.setdefault("lr decay every", "250")
-        row.setdefault("commit", commit_line.group(1).strip() if commit_line else "not recorded")
+        row.setdefault("commit", commit)
         rows[row["method"]] = row
     return rows
 
