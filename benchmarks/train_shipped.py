@@ -137,6 +137,13 @@ def main() -> None:
     parser.add_argument(
         "--arch", choices=sorted(ARCHS), default=None, help="network arch of every method (default: per method, ARCH)"
     )
+    parser.add_argument(
+        "--checkpoint-every",
+        type=int,
+        default=None,
+        help="steps between resumable checkpoints (default: a quarter of --steps); closer ones lose less of a run "
+        "cut short, which benchmarks/resume/ keeps",
+    )
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--threads", type=int, default=1, help="torch threads per training (1: see TrainConfig)")
     # Batches built in worker processes do not change the curve (don_gym.train), only the time: the
@@ -196,7 +203,7 @@ def main() -> None:
                     background_crop_probability=args.background_crops,
                     threads=args.threads,
                     workers=args.workers,
-                    checkpoint_every=max(1, args.steps // 4),
+                    checkpoint_every=args.checkpoint_every or max(1, args.steps // 4),
                 ),
                 resume=True,
             )
