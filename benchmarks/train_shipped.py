@@ -170,6 +170,7 @@ def main() -> None:
     shipped = []
     crops = {name: args.crop or CROPS[name] for name in args.objects}
     scenes = {name: SCENES[name] if args.scenes is None else args.scenes for name in args.objects}
+    checkpoint_every = max(1, args.steps // 4) if args.checkpoint_every is None else args.checkpoint_every
     commit = commit_description()
     for object_name in args.objects:
         data = work / f"data_{object_name}"
@@ -203,7 +204,7 @@ def main() -> None:
                     background_crop_probability=args.background_crops,
                     threads=args.threads,
                     workers=args.workers,
-                    checkpoint_every=args.checkpoint_every or max(1, args.steps // 4),
+                    checkpoint_every=checkpoint_every,
                 ),
                 resume=True,
             )
