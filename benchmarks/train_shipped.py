@@ -36,7 +36,7 @@ from check_shipped import record_regenerated  # noqa: E402
 
 from don_gym.build import DatasetConfig, build_dataset  # noqa: E402
 from don_gym.checkpoints import read_checkpoint_metadata, restamp_checkpoint  # noqa: E402
-from don_gym.cli import parse_size  # noqa: E402
+from don_gym.cli import parse_size, positive_int  # noqa: E402
 from don_gym.dataset import FIELD_FILE  # noqa: E402
 from don_gym.descriptors import DescriptorField  # noqa: E402
 from don_gym.errors import DonGymError  # noqa: E402
@@ -106,9 +106,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--work", default="runs/shipped", help="directory for datasets and runs")
     parser.add_argument(
-        "--scenes", type=int, default=None, help="scenes of each object's dataset (default: per object, see SCENES)"
+        "--scenes",
+        type=positive_int,
+        default=None,
+        help="scenes of each object's dataset (default: per object, see SCENES)",
     )
-    parser.add_argument("--frames", type=int, default=FRAMES, help="camera frames per scene")
+    parser.add_argument("--frames", type=positive_int, default=FRAMES, help="camera frames per scene")
     parser.add_argument("--backgrounds", choices=tuple(BACKDROP_SETS), default=VARIETY["backgrounds"])
     parser.add_argument("--distractors", type=int, default=VARIETY["distractors"])
     parser.add_argument("--lighting", choices=("fixed", "random"), default=VARIETY["lighting"])
@@ -121,10 +124,10 @@ def main() -> None:
     parser.add_argument(
         "--crop", type=parse_size, default=None, help="training crop WIDTHxHEIGHT (default: per object, see CROPS)"
     )
-    parser.add_argument("--steps", type=int, default=STEPS)
+    parser.add_argument("--steps", type=positive_int, default=STEPS)
     parser.add_argument(
         "--lr-decay-every",
-        type=int,
+        type=positive_int,
         default=LR_DECAY_EVERY,
         help="steps between learning-rate decays by x0.9 (scale it with --steps: 250 for 6000, 750 for 18000)",
     )
@@ -139,13 +142,15 @@ def main() -> None:
     )
     parser.add_argument(
         "--checkpoint-every",
-        type=int,
+        type=positive_int,
         default=None,
         help="steps between resumable checkpoints (default: a quarter of --steps); closer ones lose less of a run "
         "cut short, which benchmarks/resume/ keeps",
     )
-    parser.add_argument("--batch-size", type=int, default=8)
-    parser.add_argument("--threads", type=int, default=1, help="torch threads per training (1: see TrainConfig)")
+    parser.add_argument("--batch-size", type=positive_int, default=8)
+    parser.add_argument(
+        "--threads", type=positive_int, default=1, help="torch threads per training (1: see TrainConfig)"
+    )
     # Batches built in worker processes do not change the curve (don_gym.train), only the time: the
     # loading share of a step was a third at 256x192 crops without them.
     parser.add_argument("--workers", type=int, default=2, help="processes that build the batches (0: in the loop)")

@@ -19,6 +19,8 @@ from don_gym.errors import DonGymError
 BACKGROUND_KINDS = ("colour", "gradient", "noise")
 #: Cell sizes in pixels of the noise background: 1 = per-pixel speckle, larger = smoother blobs.
 NOISE_CELL_SIZES_PX = (1, 2, 4, 8, 16)
+#: Range of the period in pixels of the pattern backgrounds (stripes, checks), drawn log-uniformly.
+PATTERN_PERIOD_PX = (6.0, 96.0)
 
 # RGB <-> YIQ (NTSC): Y is luma, I/Q span the chroma plane, so rotating (I, Q) shifts hue.
 _RGB_TO_YIQ = torch.tensor([[0.299, 0.587, 0.114], [0.596, -0.274, -0.322], [0.211, -0.523, 0.312]])
@@ -36,6 +38,9 @@ class AugmentConfig:
         saturation: saturation factor from ``[1 - saturation, 1 + saturation]``.
         hue: hue rotation from ``[-hue, hue]`` in turns (0.5 = half the colour wheel).
         noise_std: Gaussian pixel noise with a standard deviation drawn from ``[0, noise_std]``.
+        pattern_probability: probability that a randomised background is a sharp two-colour pattern,
+            stripes or checks (:func:`random_backgrounds`), instead of a colour, gradient or noise; 0
+            draws no pattern and no random numbers for one.
     """
 
     background_probability: float = 0.5
@@ -44,10 +49,12 @@ class AugmentConfig:
     saturation: float = 0.2
     hue: float = 0.03
     noise_std: float = 0.02
+    pattern_probability: float = 0.0
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.background_probability <= 1.0:
-            raise DonGymError(f"background_probability must be in [0, 1], got {self.background_probability}")
+        for name in ("background_probability", "pattern_probability"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise DonGymError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         for name in ("brightness", "contrast", "saturation"):
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise DonGymError(f"{name} jitter must be in [0, 1), got {getattr(self, name)}")
@@ -76,10 +83,17 @@ def _random_index(batch: int, count: int, generator: torch.Generator | None, lik
 
 
 def random_backgrounds(
-    batch: int, height: int, width: int, generator: torch.Generator | None, like: torch.Tensor
+    batch: int,
+    height: int,
+    width: int,
+    generator: torch.Generator | None,
+    like: torch.Tensor,
+    pattern_probability: float = 0.0,
 ) -> torch.Tensor:
     """``(batch, 3, H, W)`` random backgrounds in [0, 1], each a colour, a random linear colour gradient
-    or noise (uniform colours on a grid of a random cell size, from per-pixel speckle to smooth blobs)."""
+    or noise (uniform colours on a grid of a random cell size, from per-pixel speckle to smooth blobs);
+    with ``pattern_probability`` > 0, that share of them is instead a sharp two-colour pattern: stripes
+    or checks at a random angle, phase and period (:data:`PATTERN_PERIOD_PX`, pixels)."""
     kind = _random_index(batch, len(BACKGROUND_KINDS), generator, like)
     colour_a = _uniform((batch, 3, 1, 1), 0.0, 1.0, generator, like)
     colour_b = _uniform((batch, 3, 1, 1), 0.0, 1.0, generator, like)
@@ -104,7 +118,26 @@ def random_backgrounds(
     noise = torch.cat(noise_images)
     colour = colour_a.expand(batch, 3, height, width)
     selector = kind.view(batch, 1, 1, 1)
-    return torch.where(selector == 0, colour, torch.where(selector == 1, gradient, noise))
+    background = torch.where(selector == 0, colour, torch.where(selector == 1, gradient, noise))
+    if pattern_probability <= 0.0:
+        return background
+    # Sharp, high-contrast periodic patterns: where the networks' matches far off the part landed on
+    # unseen scenes (striped table tops), which the smooth kinds above never show.
+    chosen = _uniform((batch, 1, 1, 1), 0.0, 1.0, generator, like) < pattern_probability
+    checks = _uniform((batch, 1, 1, 1), 0.0, 1.0, generator, like) < 0.5
+    low, high = (math.log(p) for p in PATTERN_PERIOD_PX)
+    period = torch.exp(_uniform((batch, 1, 1, 1), low, high, generator, like))
+    angle = _uniform((batch, 1, 1, 1), 0.0, math.pi, generator, like)
+    phase = _uniform((batch, 2, 1, 1), 0.0, 1.0, generator, like)
+    pixel_ys = torch.arange(height, device=like.device, dtype=like.dtype).view(1, 1, height, 1)
+    pixel_xs = torch.arange(width, device=like.device, dtype=like.dtype).view(1, 1, 1, width)
+    across = (torch.cos(angle) * pixel_xs + torch.sin(angle) * pixel_ys) / period + phase[:, :1]
+    along = (-torch.sin(angle) * pixel_xs + torch.cos(angle) * pixel_ys) / period + phase[:, 1:]
+    first = torch.floor(across).remainder(2.0) < 1.0
+    second = torch.floor(along).remainder(2.0) < 1.0
+    use_a = torch.where(checks, first ^ second, first)
+    pattern = torch.where(use_a, colour_a, colour_b)
+    return torch.where(chosen, pattern, background)
 
 
 def randomize_background(
@@ -112,8 +145,10 @@ def randomize_background(
     object_mask: torch.Tensor,
     generator: torch.Generator | None = None,
     probability: float = 0.5,
+    pattern_probability: float = 0.0,
 ) -> torch.Tensor:
-    """Replace the background (pixels outside ``object_mask``) of each image with probability ``probability``.
+    """Replace the background (pixels outside ``object_mask``) of each image with probability ``probability``,
+    by :func:`random_backgrounds` (``pattern_probability`` as there).
 
     ``rgb`` float ``(B, 3, H, W)`` in [0, 1], ``object_mask`` bool ``(B, H, W)``. Returns a
     new tensor; object pixels and unchosen images are bit-identical to the input.
@@ -127,8 +162,10 @@ def randomize_background(
         )
     if not 0.0 <= probability <= 1.0:
         raise DonGymError(f"background randomisation probability must be in [0, 1], got {probability}")
+    if not 0.0 <= pattern_probability <= 1.0:
+        raise DonGymError(f"pattern_probability must be in [0, 1], got {pattern_probability}")
     chosen = _uniform((batch,), 0.0, 1.0, generator, rgb) < probability
-    background = random_backgrounds(batch, height, width, generator, rgb)
+    background = random_backgrounds(batch, height, width, generator, rgb, pattern_probability)
     replace = (~object_mask & chosen.view(batch, 1, 1)).unsqueeze(1)
     return torch.where(replace, background, rgb)
 
@@ -179,5 +216,5 @@ def augment(
     Random numbers are drawn on the generator's device and moved to the images' device, so a CPU
     generator also serves CUDA images (bit-identical results across devices are not promised).
     """
-    out = randomize_background(rgb, object_mask, generator, config.background_probability)
+    out = randomize_background(rgb, object_mask, generator, config.background_probability, config.pattern_probability)
     return photometric_jitter(out, generator, config)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from don_gym.augment import AugmentConfig, augment, photometric_jitter, randomize_background
+from don_gym.augment import AugmentConfig, augment, photometric_jitter, random_backgrounds, randomize_background
 from don_gym.errors import CheckpointError, DonGymError
 from don_gym.model import ARCHS, DEFAULT_ARCH, DenseObjectNet
 
@@ -167,6 +167,26 @@ def test_background_randomisation_probability_and_kinds() -> None:
     spread = background.std(dim=1).amax(dim=1)
     constant = spread < 1e-6
     assert constant.any() and (~constant).any()  # plain colours and gradients/noise both occur
+
+
+def test_pattern_backgrounds_are_two_colour_stripes_or_checks_and_off_by_default() -> None:
+    like = torch.zeros(1)
+    plain = random_backgrounds(64, 48, 64, torch.Generator().manual_seed(5), like)
+    # Probability 0 draws nothing more: the backgrounds are those of the call without the option.
+    assert torch.equal(random_backgrounds(64, 48, 64, torch.Generator().manual_seed(5), like, 0.0), plain)
+    # 192 px or more in every direction: at least two of the longest periods (PATTERN_PERIOD_PX).
+    patterns = random_backgrounds(32, 192, 256, torch.Generator().manual_seed(5), like, pattern_probability=1.0)
+    assert patterns.shape == (32, 3, 192, 256)
+    for image in patterns:
+        colours = image.flatten(1).T.unique(dim=0)
+        assert len(colours) == 2  # sharp: exactly two colours, no blend between them
+        share = (image.flatten(1).T == colours[0]).all(dim=1).float().mean()
+        assert 0.2 < share < 0.8  # both colours cover a good part of the image at any period, angle and phase
+    half = random_backgrounds(400, 24, 32, torch.Generator().manual_seed(6), like, pattern_probability=0.5)
+    two_colours = torch.tensor([len(image.flatten(1).T.unique(dim=0)) == 2 for image in half])
+    assert 150 < int(two_colours.sum()) < 250  # binomial(400, 0.5); colours, gradients and noise never have two
+    with pytest.raises(DonGymError, match="pattern_probability"):
+        AugmentConfig(pattern_probability=1.5)
 
 
 def test_augmentation_is_deterministic_given_a_seed() -> None:
