@@ -172,6 +172,10 @@ CLI_CASES: dict[str, Cli] = {
     # train
     "train batch size 0": cli(*TRAIN, "--out", "{tmp}/run", "--batch-size", "0", says="batch_size"),
     "train checkpoint every 0": cli(*TRAIN, "--out", "{tmp}/run", "--checkpoint-every", "0", says="checkpoint_every"),
+    "train pattern backgrounds above 1": cli(
+        *TRAIN, "--out", "{tmp}/run", "--pattern-backgrounds", "1.5", says="pattern_probability"
+    ),
+    "train pattern backgrounds NaN": cli(*TRAIN, "--out", "{tmp}/run", "--pattern-backgrounds", "nan", says="pattern"),
     "train threads 0": cli(*TRAIN, "--out", "{tmp}/run", "--threads", "0", says="threads"),
     "train lr NaN": cli(*TRAIN, "--out", "{tmp}/run", "--lr", "nan", says="lr"),
     "train lr negative": cli(*TRAIN, "--out", "{tmp}/run", "--lr", "-1", says="lr"),

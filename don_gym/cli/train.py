@@ -69,6 +69,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "it and the frame's borders, which whole-frame inference sees)",
     )
     parser.add_argument(
+        "--pattern-backgrounds",
+        type=float,
+        default=0.0,
+        help="share of the augmentation's random backgrounds drawn as sharp two-colour stripes or checks "
+        "(AugmentConfig.pattern_probability); 0 draws none",
+    )
+    parser.add_argument(
         "--threads",
         type=int,
         default=None,
@@ -113,6 +120,9 @@ def _crop(text: str) -> tuple[int, int] | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    from don_gym.augment import AugmentConfig
     from don_gym.distributed import launch_environment, reported_elsewhere, same_on_every_process
     from don_gym.errors import DonGymError
     from don_gym.io import check_output_dir
@@ -134,6 +144,7 @@ def run(args: argparse.Namespace) -> int:
         device=args.device,
         crop_size=_crop(args.crop),
         background_crop_probability=args.background_crops,
+        augment=asdict(AugmentConfig(pattern_probability=args.pattern_backgrounds)),
         threads=args.threads,
         workers=args.workers,
         precision=args.precision,
