@@ -122,7 +122,9 @@ def random_backgrounds(
     if pattern_probability <= 0.0:
         return background
     # Sharp, high-contrast periodic patterns: where the networks' matches far off the part landed on
-    # unseen scenes (striped table tops), which the smooth kinds above never show.
+    # unseen scenes (striped table tops), which the smooth kinds above never show. The shipped recipe
+    # leaves them out: on the development scenes they moved the far matches elsewhere rather than
+    # removing them (docs/background.md, "Training data").
     chosen = _uniform((batch, 1, 1, 1), 0.0, 1.0, generator, like) < pattern_probability
     checks = _uniform((batch, 1, 1, 1), 0.0, 1.0, generator, like) < 0.5
     low, high = (math.log(p) for p in PATTERN_PERIOD_PX)
