@@ -272,10 +272,18 @@ def _read_saved_config(path: Path) -> dict[str, Any]:
 def _changed_settings(saved: dict[str, Any], config: TrainConfig, identity: str) -> list[str]:
     wanted = _config_json(config)
     defaults = _config_json(TrainConfig(method=config.method, data=config.data, out=config.out))
+
+    def completed(name: str, value: Any) -> Any:
+        # A nested setting left out (an augmentation strength added after a run was saved) is its default.
+        if isinstance(value, dict) and isinstance(defaults[name], dict):
+            return {**defaults[name], **value}
+        return value
+
     changed = sorted(
         name
         for name in wanted
-        if name not in RESUMABLE_CHANGES + PATH_SETTINGS and saved.get(name, defaults[name]) != wanted[name]
+        if name not in RESUMABLE_CHANGES + PATH_SETTINGS
+        and completed(name, saved.get(name, defaults[name])) != completed(name, wanted[name])
     )
     if DATASET_IDENTITY_KEY in saved:
         same_data = saved[DATASET_IDENTITY_KEY] == identity

@@ -326,6 +326,19 @@ def test_resume_does_not_depend_on_path_spelling(tiny_dataset: str, tmp_path: Pa
     assert reference.steps == 5
 
 
+def test_resume_reads_a_missing_augmentation_setting_as_its_default(tiny_dataset: str, tmp_path: Path) -> None:
+    # A run saved before AugmentConfig.pattern_probability existed has no such key in its config.json.
+    config = replace(_config("supervised", tiny_dataset, tmp_path / "run", steps=1), checkpoint_every=1)
+    train(config, progress=False)
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    saved["augment"].pop("pattern_probability", None)
+    (tmp_path / "run" / "config.json").write_text(json.dumps(saved))
+    full = {**config.augment, "pattern_probability": 0.0}
+    assert train(replace(config, steps=2, augment=full), resume=True, progress=False).steps == 2
+    with pytest.raises(DonGymError, match="augment"):
+        train(replace(config, steps=3, augment={**full, "pattern_probability": 0.5}), resume=True, progress=False)
+
+
 def test_damaged_run_directory_is_one_line(tiny_dataset: str, tmp_path: Path) -> None:
     config = replace(_config("supervised", tiny_dataset, tmp_path / "run", steps=1), checkpoint_every=1)
     train(config, progress=False)
