@@ -219,6 +219,7 @@ class AxisGraspAgent:
                 window_m=self.window_m,
                 temperature=self.temperature * self.source.descriptor_scale,
                 sigma=self.confidence_sigma * self.source.descriptor_scale,
+                border_margin_px=self.source.border_margin_px,
             )
             return found.points_world
         raise DonGymError(

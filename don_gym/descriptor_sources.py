@@ -33,7 +33,7 @@ from don_gym.descriptors import DescriptorField, embed, interpolate_field
 from don_gym.descriptors.multi_part import PartSpace
 from don_gym.errors import CheckpointError, DonGymError
 from don_gym.geometry import CameraIntrinsics, invert_transform, transform_points
-from don_gym.keypoints import project_visible, sample_descriptors
+from don_gym.keypoints import DEFAULT_BORDER_MARGIN_PX, project_visible, sample_descriptors
 from don_gym.model import DenseObjectNet
 from don_gym.objects import ObjectModel
 from don_gym.render import DescriptorRenderer, RenderedTarget
@@ -121,6 +121,12 @@ class DescriptorSource(ABC):
         region's scale (:class:`~don_gym.descriptors.PartSpace`). Distance scales tuned on the part's own
         field (the soft match's temperature, the keypoint confidence's sigma) are multiplied by it."""
         return 1.0
+
+    @property
+    def border_margin_px(self) -> int:
+        """Pixels along each edge of the frame where best matches are not searched
+        (:func:`don_gym.keypoints.match_region`): 0, the whole image, for descriptors that are exact there."""
+        return 0
 
     @abstractmethod
     def descriptor_image(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> np.ndarray:
@@ -282,6 +288,12 @@ class NetworkDescriptors(DescriptorSource):
     @property
     def descriptor_dim(self) -> int:
         return int(self.network.descriptor_dim)
+
+    @property
+    def border_margin_px(self) -> int:
+        """:data:`~don_gym.keypoints.DEFAULT_BORDER_MARGIN_PX`: a network's output next to the frame's edge
+        comes from features that saw the convolutions' zero padding."""
+        return DEFAULT_BORDER_MARGIN_PX
 
     @property
     def field(self) -> DescriptorField | None:

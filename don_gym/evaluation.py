@@ -28,7 +28,7 @@ from don_gym.descriptor_sources import (
 )
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics, backproject_depth, invert_transform, project_points, transform_points
-from don_gym.keypoints import descriptor_distances, project_visible
+from don_gym.keypoints import descriptor_distances, match_region, project_visible
 from don_gym.model import torch_device
 from don_gym.objects import ObjectModel
 from don_gym.stats import (
@@ -128,6 +128,9 @@ class TrackingConfig:
         match_within: ``"image"`` (the paper's: the best match anywhere in the image) or ``"instance"`` (a
             diagnostic: only among the pixels the part, in a pile the reference's own instance, shows in that
             frame, so the error says how well a method localises a point on the right instance, given it).
+        border_margin_px: pixels along each edge of the frame where matches are not searched (None: each
+            method's own, :attr:`~don_gym.descriptor_sources.DescriptorSource.border_margin_px`: 16 for a
+            network, 0 for the oracle; 0: the whole image, the paper's search).
     """
 
     points_per_scene: int = 16
@@ -137,6 +140,7 @@ class TrackingConfig:
     seed: int = 0
     max_scenes: int | None = None
     match_within: str = "image"
+    border_margin_px: int | None = None
 
     def validate(self) -> None:
         def integer(name: str, minimum: int) -> None:
@@ -156,6 +160,8 @@ class TrackingConfig:
             integer("max_scenes", 1)
         if self.match_within not in MATCH_WITHIN:
             raise DonGymError(f"match_within={self.match_within!r}: expected one of {list(MATCH_WITHIN)}")
+        if self.border_margin_px is not None:
+            integer("border_margin_px", 0)
 
 
 # --- pure core ----------------------------------------------------------------------------------
@@ -231,8 +237,9 @@ def match_descriptors(
     references: np.ndarray,
     true_uv: np.ndarray | None = None,
     candidates: np.ndarray | None = None,
+    border_margin_px: int = 0,
 ) -> Matches:
-    """Best match (argmin L2 over the whole image) of each reference descriptor.
+    """Best match (argmin L2 over the image, but for a margin along its edges) of each reference descriptor.
 
     Args:
         descriptor_image: (H, W, D) float descriptors.
@@ -241,15 +248,19 @@ def match_descriptors(
             coordinate are skipped) for the fraction of pixels closer than the true match.
         candidates: optional (H, W) bool, the only pixels a match may land on (and that count as closer);
             None or an empty mask: every pixel.
+        border_margin_px: matches land and count only in :func:`~don_gym.keypoints.match_region` of this
+            margin (0: the whole image), and within ``candidates`` there unless none of them is.
     """
     distances = descriptor_distances(descriptor_image, references)  # (N, H, W)
     count, height, width = distances.shape
     flat = distances.reshape(count, height * width)
-    pixels = height * width
-    if candidates is not None and np.asarray(candidates).any():
-        allowed = np.asarray(candidates, dtype=bool).reshape(-1)
+    allowed = match_region(height, width, border_margin_px)
+    if candidates is not None and (allowed & np.asarray(candidates, dtype=bool)).any():
+        allowed = allowed & np.asarray(candidates, dtype=bool)
+    allowed = allowed.reshape(-1)
+    pixels = int(allowed.sum())
+    if pixels < allowed.size:
         flat = np.where(allowed[None], flat, np.inf)
-        pixels = int(allowed.sum())
     best = np.argmin(flat, axis=1)
     uv = np.stack([best % width, best // width], axis=1).astype(np.int64)
     fraction = np.full(count, np.nan)
@@ -884,6 +895,15 @@ def evaluate_tracking_depths(
     for source in sources.values():
         if isinstance(source, NetworkDescriptors):
             source.network.to(run_on)
+    # A margin that leaves no pixel is refused before any work, not at the first match.
+    for data in datasets:
+        for record in data.scenes[:1]:
+            for name, source in sources.items():
+                margin = source.border_margin_px if config.border_margin_px is None else config.border_margin_px
+                try:
+                    match_region(record.intrinsics.height, record.intrinsics.width, margin)
+                except DonGymError as error:
+                    raise DonGymError(f"{name} on {data.root}: {error}") from None
     axis = model.symmetry_axis
     halves_point, halves_axis = part_halves_axis(model)
     plan = [
@@ -966,7 +986,11 @@ def evaluate_tracking_depths(
                         image = source.descriptor_image(*frame_observation(data, scene, frame))
                     candidates = reference.masks[frame] if config.match_within == "instance" else None
                     matches = match_descriptors(
-                        image, ref_descriptors[rows], np.rint(true_uv[rows]).astype(np.int64), candidates
+                        image,
+                        ref_descriptors[rows],
+                        np.rint(true_uv[rows]).astype(np.int64),
+                        candidates,
+                        source.border_margin_px if config.border_margin_px is None else config.border_margin_px,
                     )
                     truth = reference.points_world[rows]
                     T_world_camera = record.T_world_camera[frame]

@@ -27,6 +27,12 @@ DEFAULT_CONFIDENCE_SIGMA = 0.1
 #: fixed poses). Exact (oracle) descriptors change by ~0.05 per 1.5 mm along the toolcap's outer
 #: surface, so 0.15 still keeps the weights within ~5 mm of the ring along the axis.
 DEFAULT_SOFT_TEMPERATURE = 0.15
+#: Pixels along each edge of the frame where a network's best matches are not searched (see
+#: :func:`match_region`; docs/background.md, "Matching away from the frame's edge"). A network's output cells
+#: at the edge come from features that saw the convolutions' zero padding, not the scene, and there the
+#: shipped networks put most of their matches more than 100 mm off on the development scenes; 16 px is two
+#: cells of their 8-px output stride. Exact descriptors (the oracle) keep the whole frame.
+DEFAULT_BORDER_MARGIN_PX = 16
 #: Depth window radii in pixels (see :func:`robust_depth`).
 DEFAULT_MIN_RADIUS_PX = 1
 DEFAULT_MAX_RADIUS_PX = 8
@@ -95,27 +101,53 @@ def descriptor_distances(descriptor_image: np.ndarray, reference: np.ndarray) ->
     return distances
 
 
-def _best_from_distances(distances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _check_border_margin(border_margin_px: int, height: int, width: int) -> int:
+    if isinstance(border_margin_px, bool) or not isinstance(border_margin_px, (int, np.integer)):
+        raise DonGymError(f"border_margin_px={border_margin_px!r}: expected an integer number of pixels >= 0")
+    if border_margin_px < 0 or 2 * border_margin_px >= min(height, width):
+        raise DonGymError(
+            f"border_margin_px={border_margin_px}: expected >= 0 and leaving pixels in a {width}x{height} frame "
+            f"(below {(min(height, width) + 1) // 2})"
+        )
+    return int(border_margin_px)
+
+
+def match_region(height: int, width: int, border_margin_px: int = DEFAULT_BORDER_MARGIN_PX) -> np.ndarray:
+    """(H, W) bool, the pixels a best match may land on: all but the outer ``border_margin_px`` pixels of
+    each edge (see :data:`DEFAULT_BORDER_MARGIN_PX` for why). 0 gives every pixel."""
+    margin = _check_border_margin(border_margin_px, height, width)
+    region = np.zeros((height, width), dtype=bool)
+    region[margin : height - margin, margin : width - margin] = True
+    return region
+
+
+def _best_from_distances(distances: np.ndarray, border_margin_px: int = 0) -> tuple[np.ndarray, np.ndarray]:
     K, H, W = distances.shape
-    flat = distances.reshape(K, H * W)
-    index = np.argmin(flat, axis=1)
-    uv = np.stack([index % W, index // W], axis=1).astype(np.int64)
-    return uv, flat[np.arange(K), index].astype(np.float32)
+    margin = _check_border_margin(border_margin_px, H, W)
+    inner = distances[:, margin : H - margin, margin : W - margin]
+    inner_w = W - 2 * margin
+    index = np.argmin(inner.reshape(K, -1), axis=1)
+    uv = np.stack([index % inner_w + margin, index // inner_w + margin], axis=1).astype(np.int64)
+    return uv, distances[np.arange(K), uv[:, 1], uv[:, 0]].astype(np.float32)
 
 
-def best_match(descriptor_image: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def best_match(
+    descriptor_image: np.ndarray, reference: np.ndarray, border_margin_px: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
     """Pixel of smallest Euclidean descriptor distance for each reference descriptor, as in the
     original DON evaluation.
 
     Args:
         descriptor_image: (H, W, D) descriptors.
         reference: (K, D) reference descriptors.
+        border_margin_px: search only :func:`match_region` of this margin (0: the whole image, the
+            original DON's search; the protocol and the agents use :data:`DEFAULT_BORDER_MARGIN_PX`).
 
     Returns:
         ``(uv, distance)``: (K, 2) int64 pixel coordinates (u = column, v = row) and the (K,) float32
         descriptor distance there. Ties go to the first pixel in row-major order.
     """
-    return _best_from_distances(descriptor_distances(descriptor_image, reference))
+    return _best_from_distances(descriptor_distances(descriptor_image, reference), border_margin_px)
 
 
 def _soft_from_distances(
@@ -146,6 +178,7 @@ def soft_match(
     reference: np.ndarray,
     window_px: float | np.ndarray,
     temperature: float = DEFAULT_SOFT_TEMPERATURE,
+    border_margin_px: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Best match refined to the descriptor-weighted mean pixel around it.
 
@@ -162,6 +195,7 @@ def soft_match(
         window_px: radius in pixels of the disc around each best match that is averaged, a scalar
             or (K,); below 1 the best match itself is returned.
         temperature: weight scale in descriptor units (> 0).
+        border_margin_px: the best match is searched in :func:`match_region` of this margin (0: everywhere).
 
     Returns:
         ``(uv, distance)``: (K, 2) float64 sub-pixel coordinates (u, v) and the (K,) float32 best-match
@@ -173,7 +207,7 @@ def soft_match(
     window = np.broadcast_to(np.asarray(window_px, dtype=np.float64), (distances.shape[0],))
     if not np.all(np.isfinite(window)):
         raise DonGymError(f"window_px={window_px!r}: expected finite radii in pixels")
-    best_uv, best_distance = _best_from_distances(distances)
+    best_uv, best_distance = _best_from_distances(distances, border_margin_px)
     return _soft_from_distances(distances, best_uv, best_distance, window, temperature), best_distance
 
 
@@ -400,6 +434,7 @@ def locate_keypoints(
     sigma: float = DEFAULT_CONFIDENCE_SIGMA,
     min_radius_px: int = DEFAULT_MIN_RADIUS_PX,
     max_radius_px: int = DEFAULT_MAX_RADIUS_PX,
+    border_margin_px: int = 0,
 ) -> Keypoints:
     """Match reference descriptors and lift them to 3D: best match, soft match, robust depth, world.
 
@@ -414,6 +449,8 @@ def locate_keypoints(
         temperature: soft-match weight scale (descriptor units).
         sigma: confidence scale (descriptor units), see :func:`match_confidence`.
         min_radius_px, max_radius_px: depth windows, see :func:`robust_depth`.
+        border_margin_px: best matches are searched in :func:`match_region` of this margin (0: everywhere;
+            a descriptor source's own is :attr:`~don_gym.descriptor_sources.DescriptorSource.border_margin_px`).
 
     Returns:
         :class:`Keypoints`.
@@ -426,7 +463,7 @@ def locate_keypoints(
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise DonGymError(f"T_world_camera: expected a finite (4, 4) transform, got shape {T.shape}")
     distances = descriptor_distances(image, reference)
-    best_uv, best_distance = _best_from_distances(distances)
+    best_uv, best_distance = _best_from_distances(distances, border_margin_px)
     window_m = np.broadcast_to(np.asarray(window_m, dtype=np.float64), (len(best_uv),))
     if np.any(window_m > 0):
         z_best, z_valid = robust_depth(depth, best_uv, min_radius_px, max_radius_px)

@@ -120,6 +120,12 @@ CLI_CASES: dict[str, Cli] = {
     "evaluate max scenes 0": cli(*EVAL, "--out", "{tmp}/o", "--max-scenes", "0", says="max_scenes=0"),
     "evaluate threads 0": cli(*EVAL, "--out", "{tmp}/o", "--threads", "0", says="--threads 0"),
     "evaluate seed negative": cli(*EVAL, "--out", "{tmp}/o", "--seed", "-1", says="seed=-1"),
+    "evaluate border margin negative": cli(
+        *EVAL, "--out", "{tmp}/o", "--border-margin", "-1", says="border_margin_px=-1"
+    ),
+    "evaluate border margin wider than the frame": cli(
+        *EVAL, "--out", "{tmp}/o", "--border-margin", "5000", says="border_margin_px=5000"
+    ),
     "evaluate unknown depth": cli(*EVAL, "--out", "{tmp}/o", "--depth", "fused", says="--depth"),
     "evaluate unknown network": cli(*EVAL, "--out", "{tmp}/o", "--models", "toolcap/nonsense", says="nonsense"),
     "evaluate missing checkpoint": cli(

@@ -61,6 +61,31 @@ def test_match_on_a_shifted_copy_has_the_known_pixel_error_and_false_positive_fr
     assert shifted.fraction_closer[0] == pytest.approx(9 / (width * height))
 
 
+def test_a_border_margin_moves_matches_inside_and_counts_only_pixels_there() -> None:
+    width, height = 12, 10
+    reference = _ramp_image(width, height)[0, 11][None]  # the top-right corner's descriptor
+    whole = match_descriptors(_ramp_image(width, height), reference, np.array([[11, 0]]))
+    np.testing.assert_array_equal(whole.uv, [[11, 0]])
+    inside = match_descriptors(_ramp_image(width, height), reference, np.array([[11, 0]]), border_margin_px=1)
+    np.testing.assert_array_equal(inside.uv, [[10, 1]])
+    assert inside.distance[0] == pytest.approx(np.sqrt(2.0))
+    # Against a true pixel inside, the closer pixels are counted among the inner 10 x 8 only.
+    shifted = match_descriptors(
+        _ramp_image(width, height, shift_u=2),
+        _ramp_image(width, height)[5, 4][None],
+        np.array([[4, 5]]),
+        border_margin_px=1,
+    )
+    assert shifted.fraction_closer[0] == pytest.approx(9 / ((width - 2) * (height - 2)))
+    # A candidate mask applies within the margin; one entirely inside the margin leaves the margin's region.
+    edge_only = np.zeros((height, width), dtype=bool)
+    edge_only[0] = True
+    fallback = match_descriptors(_ramp_image(width, height), reference, None, edge_only, border_margin_px=1)
+    np.testing.assert_array_equal(fallback.uv, [[10, 1]])
+    with pytest.raises(DonGymError, match="border_margin_px"):
+        TrackingConfig(border_margin_px=-1).validate()
+
+
 def test_3d_error_from_depth_and_visibility_on_a_plane() -> None:
     intrinsics = CameraIntrinsics.d435(64, 48)
     T_world_camera = make_transform(translation=[0.1, -0.2, 0.5])

@@ -28,6 +28,7 @@ from don_gym.keypoints import (
     descriptor_distances,
     locate_keypoints,
     match_confidence,
+    match_region,
     project_visible,
     robust_depth,
     robust_point_from_depth,
@@ -72,6 +73,26 @@ def test_best_match_ties_go_to_the_first_pixel_and_soft_match_to_the_middle_of_a
     # Window 0 keeps the best match; a narrow window averages only its part of the ring.
     np.testing.assert_array_equal(soft_match(image, ring, window_px=0.0)[0][0], [3.0, 4.0])
     np.testing.assert_allclose(soft_match(image, ring, window_px=2.0, temperature=0.05)[0][0], [4.0, 4.0], atol=1e-6)
+
+
+def test_a_border_margin_keeps_best_matches_off_the_frames_edge() -> None:
+    image = _gradient_image(9, 12)
+    reference = np.array([image[0, 11], image[4, 5]], dtype=np.float32)  # a corner pixel and an inner one
+    uv, distance = best_match(image, reference)
+    assert uv.tolist() == [[11, 0], [5, 4]]
+    uv, distance = best_match(image, reference, border_margin_px=2)
+    # The corner's descriptor now finds the nearest pixel of the inner region; the inner pixel is unchanged.
+    assert uv.tolist() == [[9, 2], [5, 4]]
+    np.testing.assert_allclose(distance[0], np.hypot(2 / 12, 2 / 9), rtol=1e-5)
+    assert distance[1] == 0.0
+    soft_uv, _ = soft_match(image, reference, window_px=0.0, border_margin_px=2)
+    np.testing.assert_array_equal(soft_uv, [[9.0, 2.0], [5.0, 4.0]])
+    region = match_region(9, 12, 2)
+    assert region.shape == (9, 12) and region.sum() == 5 * 8 and region[2, 2] and not region[1, 5]
+    assert match_region(9, 12, 0).all()
+    for bad in (-1, 5, 2.0, True):
+        with pytest.raises(DonGymError, match="border_margin_px"):
+            best_match(image, reference, border_margin_px=bad)
 
 
 def test_match_confidence_is_one_at_zero_and_strictly_decreasing() -> None:
@@ -295,6 +316,25 @@ def test_network_descriptors_through_the_wrapper(ee_env, tmp_path: Path) -> None
     expected = env.source.network.descriptor_image(obs["rgb"])
     np.testing.assert_allclose(obs["descriptors"], expected, atol=1e-6)
     assert obs["keypoint_points"].shape == (3, 3) and env.observation_space.contains(obs)
+    # A network's matches keep off the outer 16 px, where its output saw zero padding; the oracle's do not.
+    height, width = obs["descriptors"].shape[:2]
+    assert env.border_margin_px == env.source.border_margin_px == 16
+    best_only = KeypointObservation(
+        ee_env, model=str(path), reference_descriptors=np.random.default_rng(0).random((8, 3)), window_m=0.0
+    )
+    pixels = best_only.reset(seed=0)[0]["keypoint_pixels"]
+    assert np.all((pixels >= 16) & (pixels <= np.array([width - 17, height - 17])))
+    assert KeypointObservation(ee_env, model="oracle").border_margin_px == 0
+    assert (
+        KeypointObservation(
+            ee_env, model=str(path), reference_descriptors=np.zeros((3, 3), np.float32), border_margin_px=0
+        ).border_margin_px
+        == 0
+    )
+    with pytest.raises(DonGymError, match="border_margin_px=24"):
+        KeypointObservation(
+            ee_env, model=str(path), reference_descriptors=np.zeros((3, 3), np.float32), border_margin_px=24
+        )
     # An untrained net is not trained on this field: its hash does not match, so no field references.
     with pytest.warns(UserWarning, match="reference frame"):
         assert not env.source.reference_from_field

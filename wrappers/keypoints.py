@@ -29,6 +29,7 @@ from don_gym.keypoints import (
     DEFAULT_MIN_RADIUS_PX,
     DEFAULT_SOFT_TEMPERATURE,
     locate_keypoints,
+    match_region,
 )
 from don_gym.model import DenseObjectNet
 from don_gym.wrappers.descriptors import DescriptorObservation
@@ -67,6 +68,8 @@ class KeypointObservation(DescriptorObservation):
             part's own field's units (multiplied by the source's ``descriptor_scale`` for a network of several parts).
         descriptor_dim, occlusion_check: as for :class:`DescriptorObservation`.
         min_radius_px, max_radius_px: depth windows (:func:`don_gym.keypoints.robust_depth`).
+        border_margin_px: pixels along each edge of the frame where matches are not searched (None: the
+            model's own, :attr:`~don_gym.descriptor_sources.DescriptorSource.border_margin_px`; 0: everywhere).
     """
 
     def __init__(
@@ -84,6 +87,7 @@ class KeypointObservation(DescriptorObservation):
         occlusion_check: bool = True,
         min_radius_px: int = DEFAULT_MIN_RADIUS_PX,
         max_radius_px: int = DEFAULT_MAX_RADIUS_PX,
+        border_margin_px: int | None = None,
     ) -> None:
         # Recorded first: DescriptorObservation's own recording is then ignored (RecordConstructorArgs).
         gym.utils.RecordConstructorArgs.__init__(
@@ -100,6 +104,7 @@ class KeypointObservation(DescriptorObservation):
             occlusion_check=occlusion_check,
             min_radius_px=min_radius_px,
             max_radius_px=max_radius_px,
+            border_margin_px=border_margin_px,
         )
         super().__init__(env, model, descriptor_dim=descriptor_dim, occlusion_check=occlusion_check)
         dim = self.source.descriptor_dim
@@ -136,6 +141,9 @@ class KeypointObservation(DescriptorObservation):
 
         K = len(reference)
         height, width = self.observation_space["rgb"].shape[:2]
+        margin = self.source.border_margin_px if border_margin_px is None else border_margin_px
+        match_region(height, width, margin)  # refuses a margin that is not a count or leaves no pixels
+        self.border_margin_px = int(margin)
         entries = dict(self.observation_space.spaces)
         if not self.keep_images:
             for key in IMAGE_KEYS:
@@ -166,6 +174,7 @@ class KeypointObservation(DescriptorObservation):
             sigma=self.confidence_sigma * self.source.descriptor_scale,
             min_radius_px=self.min_radius_px,
             max_radius_px=self.max_radius_px,
+            border_margin_px=self.border_margin_px,
         )
         if not self.keep_images:
             obs = {k: v for k, v in obs.items() if k not in IMAGE_KEYS}

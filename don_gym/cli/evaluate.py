@@ -12,9 +12,10 @@ DESCRIPTION = """\
 Tracking-error evaluation (Kupcsik et al., AAAI 2021, Sec. "Quantitative Evaluation of Prediction
 Accuracy"), with the original DON metrics (Florence et al. 2018). Per scene: reference pixels on the
 object in one frame, their descriptors and their true 3D points (ideal depth, true camera pose);
-in every other frame where a point is visible, the best match (argmin L2 over the whole image), and
-per match the 3D error, the 3D error modulo the part's rotational symmetry, the pixel error to the
-true projection and the fraction of pixels closer than the true match.
+in every other frame where a point is visible, the best match (argmin L2 over the image; for a
+network, but for its outer 16 pixels, where its output saw the convolutions' padding), and per match
+the 3D error, the 3D error modulo the part's rotational symmetry, the pixel error to the true
+projection and the fraction of pixels closer than the true match.
 
 DATA must be scenes the networks were NOT trained on and no decision has used. Several datasets
 (e.g. one per seed) are pooled: every percentile comes with a 95% interval from resampling their
@@ -97,6 +98,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="search each best match in the whole image (default, the paper's) or, as a diagnostic, only on the "
         "part's pixels in that frame (in a pile: the reference's own instance)",
     )
+    parser.add_argument(
+        "--border-margin",
+        type=int,
+        default=None,
+        metavar="PX",
+        help="pixels along each edge of the frame where best matches are not searched (default: each method's "
+        "own, 16 for a network, whose output there saw the convolutions' zero padding, 0 for the oracle; "
+        "0: the whole image, the paper's search)",
+    )
     parser.add_argument("--max-scenes", type=int, default=None, help="evaluate only the first N scenes")
     parser.add_argument("--threads", type=int, default=1, help="torch threads for the networks (default: 1)")
     parser.add_argument("--device", default="cpu", help="device of the networks: cpu (default), cuda, cuda:N or auto")
@@ -155,6 +165,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         max_scenes=args.max_scenes,
         match_within=args.match_within,
+        border_margin_px=args.border_margin,
     )
     config.validate()
     datasets = [DONDataset(path) for path in args.data]
