@@ -163,6 +163,11 @@ class TrackingConfig:
         if self.border_margin_px is not None:
             integer("border_margin_px", 0)
 
+    def border_margin_for(self, source: DescriptorSource) -> int:
+        """The border margin (px) the matches of ``source`` are searched with: :attr:`border_margin_px` or, when
+        None, the source's own."""
+        return source.border_margin_px if self.border_margin_px is None else int(self.border_margin_px)
+
 
 # --- pure core ----------------------------------------------------------------------------------
 
@@ -517,8 +522,11 @@ def frame_observation(dataset: DONDataset, scene: int, frame: int) -> tuple[dict
     return obs, info
 
 
-def _source_info(source: DescriptorSource) -> dict[str, Any]:
+def _source_info(source: DescriptorSource, config: TrackingConfig | None = None) -> dict[str, Any]:
+    """What a method's results rest on, for the report; with ``config``, the border margin its matches used."""
     info: dict[str, Any] = {"method": source.method, "descriptor_dim": source.descriptor_dim}
+    if config is not None:
+        info["border_margin_px"] = config.border_margin_for(source)
     metadata = getattr(source, "metadata", None)
     if metadata is not None:
         info |= {
@@ -899,9 +907,8 @@ def evaluate_tracking_depths(
     for data in datasets:
         for record in data.scenes[:1]:
             for name, source in sources.items():
-                margin = source.border_margin_px if config.border_margin_px is None else config.border_margin_px
                 try:
-                    match_region(record.intrinsics.height, record.intrinsics.width, margin)
+                    match_region(record.intrinsics.height, record.intrinsics.width, config.border_margin_for(source))
                 except DonGymError as error:
                     raise DonGymError(f"{name} on {data.root}: {error}") from None
     axis = model.symmetry_axis
@@ -990,7 +997,7 @@ def evaluate_tracking_depths(
                         ref_descriptors[rows],
                         np.rint(true_uv[rows]).astype(np.int64),
                         candidates,
-                        source.border_margin_px if config.border_margin_px is None else config.border_margin_px,
+                        config.border_margin_for(source),
                     )
                     truth = reference.points_world[rows]
                     T_world_camera = record.T_world_camera[frame]
@@ -1049,7 +1056,7 @@ def evaluate_tracking_depths(
         dtype = np.int64 if name in integer_keys else {"category": np.int8, "depth_valid": bool}.get(name, np.float64)
         return np.zeros((0, 2) if name.endswith("_uv") else 0, dtype=dtype)
 
-    sources_info = {name: _source_info(source) for name, source in sources.items()}
+    sources_info = {name: _source_info(source, config) for name, source in sources.items()}
     results = {}
     for depth_name in depths:
         matches_by_method = {}

@@ -15,7 +15,7 @@ from synthetic_scenes import Sphere, look_at, render_scene, table_scene
 from don_gym.build import DatasetConfig, build_dataset
 from don_gym.checkpoints import save_checkpoint
 from don_gym.cli import main
-from don_gym.descriptor_sources import DescriptorSource
+from don_gym.descriptor_sources import DescriptorSource, NetworkDescriptors
 from don_gym.errors import DonGymError
 from don_gym.evaluation import (
     FAR_MATCH_M,
@@ -84,6 +84,9 @@ def test_a_border_margin_moves_matches_inside_and_counts_only_pixels_there() -> 
     np.testing.assert_array_equal(fallback.uv, [[10, 1]])
     with pytest.raises(DonGymError, match="border_margin_px"):
         TrackingConfig(border_margin_px=-1).validate()
+    network = NetworkDescriptors(DenseObjectNet(descriptor_dim=3))
+    assert TrackingConfig().border_margin_for(network) == 16
+    assert TrackingConfig(border_margin_px=0).border_margin_for(network) == 0
 
 
 def test_3d_error_from_depth_and_visibility_on_a_plane() -> None:
@@ -225,6 +228,9 @@ def test_cli_writes_json_table_and_plots(ideal_dataset: Path, tmp_path: Path, ca
         assert method["counts"]["visible_matches"] > 0
         assert len(method["per_scene"]) == 2 and set(method["far_by_category"]) == set(MATCH_CATEGORIES)
     assert summary["methods"][str(checkpoint)]["source"]["method"] == "supervised-edge"
+    # Each method's border margin is on record: a network's own, the oracle's whole frame.
+    assert summary["methods"][str(checkpoint)]["source"]["border_margin_px"] == 16
+    assert summary["methods"]["oracle"]["source"]["border_margin_px"] == 0
     # One part, one instance: no any-instance error in the summary or the report (a pile's, test_bin_data).
     assert not any("any_instance" in key for method in summary["methods"].values() for key in method)
     assert "any instance" not in printed
