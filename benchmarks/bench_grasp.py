@@ -2,7 +2,8 @@
 
 Tracking (RESULTS.md section "tracking") on the test split of each object (the scenes of three seeds no
 decision has used, :data:`don_gym.evaluation.TEST_SEEDS`; ``--split dev`` runs the development seeds into
-section "tracking-dev" and writes no README or docs block), every percentile with its 95% interval over
+section "tracking-dev", with each method's border margin beside the paper's whole-image search, and writes no
+README or docs block), every percentile with its 95% interval over
 scenes, the supervised networks checked against their targets (:data:`TRACKING_TARGETS_MM`), with the paper's
 tracking figure for all objects in one picture; grasp-and-place (sections "grasp",
 the toolcap, the headline, and "grasp-shaft") on each object's 8 fixed poses over a depth-sensor sweep, with
@@ -243,6 +244,19 @@ def tracking(args: argparse.Namespace, work: Path) -> tuple[str, dict[str, dict[
             f"\n\n{object_name}: datasets built in {build_s:.0f} s, both depths evaluated in one pass in "
             f"{evaluation_s:.0f} s (bootstrap and figures included)."
         )
+        if args.split == "dev":
+            # Decisions about the matcher need its baseline in the same run: the paper's whole-image search.
+            whole = evaluate_tracking_depths(
+                datasets,
+                ["oracle", *networks],
+                TrackingConfig(points_per_scene=args.points, border_margin_px=0),
+                depths=(FIGURE_DEPTH,),
+            )[FIGURE_DEPTH]
+            parts[-1] += (
+                f"\n\n{object_name}, {FIGURE_DEPTH} depth: each method's border margin against the paper's search "
+                "over the whole image (margin 0), the same scenes and reference points:\n\n"
+                + margin_comparison_table(summaries[object_name], whole.summary())
+            )
     header = (
         f"Split `{args.split}`: dataset seeds {', '.join(map(str, seeds))} "
         + (
@@ -346,6 +360,27 @@ def _mm(value: float | None) -> str:
 def _with_ci(value: float | None, interval: tuple[float, float], digits: int = 1) -> str:
     """``39.5 [31.0, 52.3]`` (:func:`don_gym.stats.format_estimate`)."""
     return format_estimate(value, interval, digits)
+
+
+def margin_comparison_table(own: dict[str, Any], whole_image: dict[str, Any]) -> str:
+    """Markdown table, one row per method: far share, p99 and median modulo symmetry with each method's own
+    border margin beside the same figures of the whole-image search (two summaries of the same scenes)."""
+    rows = [
+        "| method | border margin (px) | share > 100 mm (%), whole image | with margin | 3D error p99 (mm), whole "
+        "image | with margin | mod symmetry p50 (mm), whole image | with margin |",
+        "|---|---:|---|---|---|---|---|---|",
+    ]
+    baseline = tracking_figures(whole_image)
+    for kind, f in tracking_figures(own).items():
+        b = baseline[kind]
+        margin = own["methods"][f["name"]]["source"].get("border_margin_px", 0)
+        rows.append(
+            f"| {f['name']} | {margin} | {_with_ci(b['far_pct'], b['far_pct_ci'], 2)} | "
+            f"{_with_ci(f['far_pct'], f['far_pct_ci'], 2)} | {_with_ci(b['p99_mm'], b['p99_ci'])} | "
+            f"{_with_ci(f['p99_mm'], f['p99_ci'])} | {_with_ci(b['p50_sym_mm'], b['p50_sym_ci'])} | "
+            f"{_with_ci(f['p50_sym_mm'], f['p50_sym_ci'])} |"
+        )
+    return "\n".join(rows)
 
 
 def _dataset_text(summary: dict[str, Any]) -> str:

@@ -103,3 +103,18 @@ def test_tracking_targets_name_each_supervised_network_met_or_missed() -> None:
         line = bench_grasp.tracking_targets("toolcap", {"supervised-edge": figures(p99_mm, far_pct)})[0]
         assert line.endswith(": MISSED") and "(target <= 45 mm)" in line and "(target <= 0.5 %)" in line
     assert bench_grasp.tracking_targets("bracket", {"supervised-edge": figures(1.0, 0.0)}) == []
+
+
+def test_the_development_split_shows_each_margin_beside_the_whole_image_search() -> None:
+    """One row per method with its own border margin and both searches' figures, the baseline first."""
+    with_margin = _summary("toolcap", (1.2, 2.4))
+    for name, method in with_margin["methods"].items():
+        method["source"]["border_margin_px"] = 16
+    whole_image = _summary("toolcap", (1.2, 2.4))
+    table = bench_grasp.margin_comparison_table(with_margin, whole_image)
+    rows = [line for line in table.splitlines() if line.startswith("| toolcap/")]
+    assert len(rows) == 3 and all("| 16 |" in row for row in rows)
+    ssl = next(row for row in rows if row.startswith("| toolcap/self-supervised |")).split(" | ")
+    # The fixture's self-supervised network has a fifth of its matches far in both searches.
+    far_whole, far_margin = float(ssl[2].split()[0]), float(ssl[3].split()[0])
+    assert 15.0 < far_whole == far_margin < 25.0
