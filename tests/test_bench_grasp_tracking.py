@@ -108,7 +108,7 @@ def test_tracking_targets_name_each_supervised_network_met_or_missed() -> None:
 def test_the_development_split_shows_each_margin_beside_the_whole_image_search() -> None:
     """One row per method with its own border margin and both searches' figures, the baseline first."""
     with_margin = _summary("toolcap", (1.2, 2.4))
-    for name, method in with_margin["methods"].items():
+    for method in with_margin["methods"].values():
         method["source"]["border_margin_px"] = 16
     whole_image = _summary("toolcap", (1.2, 2.4))
     table = bench_grasp.margin_comparison_table(with_margin, whole_image)
