@@ -331,6 +331,12 @@ def test_network_descriptors_through_the_wrapper(ee_env, tmp_path: Path) -> None
         ).border_margin_px
         == 0
     )
+    tiny = gym.make("DONToolcapPick-v0", control="ee", image_size=(32, 24))
+    try:
+        with pytest.raises(DonGymError, match=r"border_margin_px=16.*'supervised-edge' model's own.*32x24"):
+            KeypointObservation(tiny, model=str(path), reference_descriptors=np.zeros((3, 3), np.float32))
+    finally:
+        tiny.close()
     with pytest.raises(DonGymError, match="border_margin_px=24"):
         KeypointObservation(
             ee_env, model=str(path), reference_descriptors=np.zeros((3, 3), np.float32), border_margin_px=24

@@ -142,7 +142,14 @@ class KeypointObservation(DescriptorObservation):
         K = len(reference)
         height, width = self.observation_space["rgb"].shape[:2]
         margin = self.source.border_margin_px if border_margin_px is None else border_margin_px
-        match_region(height, width, margin)  # refuses a margin that is not a count or leaves no pixels
+        try:
+            match_region(height, width, margin)  # refuses a margin that is not a count or leaves no pixels
+        except DonGymError as error:
+            source = "given" if border_margin_px is not None else f"the {self.source.method!r} model's own"
+            raise DonGymError(
+                f"{error} ({source}, for the env's {width}x{height} images; pass a smaller border_margin_px, "
+                "0 to search the whole frame)"
+            ) from None
         self.border_margin_px = int(margin)
         entries = dict(self.observation_space.spaces)
         if not self.keep_images:
