@@ -125,9 +125,10 @@ class TrackingConfig:
         erode_px: reference pixels keep this many pixels from the object silhouette.
         seed: seed of the reference-pixel draw.
         max_scenes: evaluate only the first scenes (None: all).
-        match_within: ``"image"`` (the paper's: the best match anywhere in the image) or ``"instance"`` (a
-            diagnostic: only among the pixels the part, in a pile the reference's own instance, shows in that
-            frame, so the error says how well a method localises a point on the right instance, given it).
+        match_within: ``"image"`` (the paper's: the best match anywhere in the image, but for the border margin) or
+            ``"instance"`` (a diagnostic: only among the pixels the part, in a pile the reference's own instance,
+            shows in that frame, so the error says how well a method localises a point on the right instance,
+            given it).
         border_margin_px: pixels along each edge of the frame where matches are not searched (None: each
             method's own, :attr:`~don_gym.descriptor_sources.DescriptorSource.border_margin_px`: 16 for a
             network, 0 for the oracle; 0: the whole image, the paper's search).

@@ -95,8 +95,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--match-within",
         choices=("image", "instance"),
         default="image",
-        help="search each best match in the whole image (default, the paper's) or, as a diagnostic, only on the "
-        "part's pixels in that frame (in a pile: the reference's own instance)",
+        help="search each best match in the image (default, the paper's; for a network but for --border-margin) or, "
+        "as a diagnostic, only on the part's pixels in that frame (in a pile: the reference's own instance)",
     )
     parser.add_argument(
         "--border-margin",
