@@ -261,8 +261,10 @@ def match_descriptors(
     count, height, width = distances.shape
     flat = distances.reshape(count, height * width)
     allowed = match_region(height, width, border_margin_px)
-    if candidates is not None and (allowed & np.asarray(candidates, dtype=bool)).any():
-        allowed = allowed & np.asarray(candidates, dtype=bool)
+    if candidates is not None:
+        within = allowed & np.asarray(candidates, dtype=bool)
+        if within.any():
+            allowed = within
     allowed = allowed.reshape(-1)
     pixels = int(allowed.sum())
     if pixels < allowed.size:
