@@ -235,7 +235,7 @@ def test_ee_mode_scripted_pick_lifts_the_part_and_truncates():
         env.close()
 
 
-def test_part_leaving_the_workspace_ends_with_fail():
+def test_part_leaving_the_workspace_ends_the_episode_a_fail_unless_it_was_lifted():
     env = gym.make("DONToolcapPick-v0", control="ee", image_size=None, sensor="ideal").unwrapped
     try:
         env.reset(seed=0)
@@ -243,7 +243,13 @@ def test_part_leaving_the_workspace_ends_with_fail():
         T[:3, 3] = [1.5, 0.0, -0.3]  # beside the table, below its top: fell off
         env.task.part.set_pose(T)
         _, reward, terminated, _, info = env.step(np.zeros(5, dtype=np.float32))
+        # Never lifted: pushed off, the paper's "fail".
         assert terminated and info["outcome"] == "fail" and reward == 0.0
+        # Lifted, then lost over the table's edge: grasped, not placed (the paper's "grasp only").
+        contacts = env.robot.contacts(env.task)
+        assert not any(contacts.fingers)
+        judgement = env.task.judge(True, env.task.left_workspace(), contacts)
+        assert judgement.outcome == "grasp_only" and not judgement.is_success
     finally:
         env.close()
 

@@ -342,9 +342,11 @@ class PickPlaceTask:
     ) -> Judgement:
         """The paper's outcome now, given whether the part was lifted this episode and has left the table.
 
-        - ``"fail"``: the part was never lifted (or it left the workspace).
-        - ``"grasp_only"``: it was lifted, but then dropped, misplaced, or placed reversed
-          (+axis against the target direction, "upside down").
+        - ``"fail"``: the part was never lifted (a part pushed off the table without a lift included).
+        - ``"grasp_only"``: it was lifted, but then dropped (off the table too), misplaced, or placed
+          reversed (+axis against the target direction, "upside down"). The paper's "fail" is a grasp
+          that left the part untouched and its "grasp only" a successful grasp whose placement failed,
+          "e.g. dropped": a part lifted and then lost over the table's edge was grasped.
         - ``"grasp_and_place"``: it lies in the cradle (touches it, not the table), its centre of
           mass within :data:`PLACE_TOLERANCE_M` (horizontally) of the cradle centre and its +axis
           within :data:`AXIS_TOLERANCE_RAD` of the target direction, released by the gripper; with
@@ -353,9 +355,9 @@ class PickPlaceTask:
           tolerance.
         """
         placement = self.placement(contacts)
-        if left_workspace or not lifted:
+        if not lifted:
             outcome = "fail"
-        elif placement.correct and not any(contacts.fingers):
+        elif placement.correct and not left_workspace and not any(contacts.fingers):
             outcome = "grasp_and_place"
         else:
             outcome = "grasp_only"
