@@ -75,8 +75,9 @@ PILES = 60
 QUICK_PILES = 2
 SPLIT_SEED = {"test": BIN_TEST_SEED, "dev": BIN_DEVELOPMENT_SEED}
 
-#: Tracking piles per dataset seed and frames per pile: 24 piles of a split, so >= 48 reference instances of the
-#: shaft (2 per pile) and 72 of the toolcap; 6 frames like the multi-part training data.
+#: Tracking piles per dataset seed and frames per pile: 24 piles of the test split (48 of the development split), so
+#: >= 48 reference instances of the shaft (2 per pile) and 72 of the toolcap; 6 frames like the multi-part
+#: training data.
 TRACKING_SCENES = 8
 TRACKING_FRAMES = 6
 #: The variety of the multi-part networks' training data (runs/bin/data_bin/dataset.json: backgrounds, lighting).
