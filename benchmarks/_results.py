@@ -127,12 +127,16 @@ def kept_object_subsections(
 ) -> dict[str, str]:
     """The markdown of each object in ``objects`` but not in ``measured`` that RESULTS.md's section ``name``
     holds, by object: from its first ``### <object>`` heading to the next object's (or the section's end), with
-    a line naming the run that measured it (command, date, commit), so that a run of some objects can keep the
-    others' figures without passing them off as its own. A part kept before keeps its original line."""
+    a line naming the run that measured it (command, date, commit, and the dataset seeds where the section names
+    them), so that a run of some objects can keep the others' figures without passing them off as its own. A
+    part kept before keeps its original line."""
     text = read_section(name, path)
     if text is None:
         return {}
     origin = section_origin(text)
+    # A run on other seeds (the test seeds renewed) must not lend its split line to figures it did not measure.
+    seeds = re.search(r"dataset seeds ([0-9][0-9, ]*[0-9])", text)
+    on_seeds = f" on dataset seeds {seeds.group(1)}" if seeds else ""
     starts = {}
     for object_name in objects:
         heading = re.search(rf"^### {re.escape(object_name)}\b", text, re.M)
@@ -147,7 +151,7 @@ def kept_object_subsections(
         if f"*{object_name}: kept from " not in part:
             part += (
                 f"\n\n*{object_name}: kept from the run of {origin['Date']} (commit {origin['Commit']}, "
-                f"{origin['Command']}); the run above measured {', '.join(measured)} only.*"
+                f"{origin['Command']}){on_seeds}; the run above measured {', '.join(measured)} only.*"
             )
         kept[object_name] = part
     return kept

@@ -52,14 +52,15 @@ TRACKING_DEPTHS: tuple[str, ...] = ("ideal", "sensor")
 # architecture or training recipe uses DEVELOPMENT_SEEDS. Once a test result has been looked at to make
 # a decision, its seeds are spent: they move to SPENT_SEEDS and new test seeds are chosen.
 #: Held-out test scenes: ``SCENES_PER_SEED`` scenes of each, pooled (24 scenes per part).
-TEST_SEEDS: tuple[int, ...] = (4101, 4102, 4103)
+TEST_SEEDS: tuple[int, ...] = (6101, 6102, 6103)
 #: Development scenes, for every decision about data, networks and training. 3104-3106 joined 3101-3103 when
 #: 24 scenes proved too few to show the shaft's supervised-edge network's rare wrong-end matches (1 on them,
 #: against 26 on the test scenes), so that a lever against those can be judged before any test scene is seen.
 DEVELOPMENT_SEEDS: tuple[int, ...] = (3101, 3102, 3103, 3104, 3105, 3106)
 #: No longer held out. 1000: the earlier held-out set, used to choose the shipped networks' architecture,
-#: targets and training data.
-SPENT_SEEDS: tuple[int, ...] = (1000,)
+#: targets and training data. 4101-4103: the test set until 2026-12-04, spent when the shaft's supervised-edge
+#: network missing its far-match target on them led to retraining the shaft's networks on more scenes.
+SPENT_SEEDS: tuple[int, ...] = (1000, 4101, 4102, 4103)
 #: The shipped networks' training data (``benchmarks/train_shipped.py``).
 TRAINING_SEEDS: tuple[int, ...] = (0,)
 #: Piles of the bin clearing benchmark (:mod:`don_gym.bin_benchmark`): pile ``i`` is ``reset(seed=SEED + i)``.

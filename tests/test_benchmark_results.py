@@ -194,3 +194,17 @@ def test_a_run_of_some_objects_keeps_the_others_marked_with_their_run(tmp_path: 
     assert "| c |" in toolcap and "shaft" not in toolcap.split("*toolcap: kept")[0]
     assert _results.kept_object_subsections("pose", ("toolcap", "shaft"), ["toolcap", "shaft"], path=results) == {}
     assert _results.kept_object_subsections("absent", ("toolcap",), [], path=results) == {}
+
+
+def test_a_kept_part_names_the_seeds_it_was_measured_on(tmp_path: Path) -> None:
+    """Once the test seeds are renewed, a run of one object writes the new seeds into the section's split line:
+    the other object's kept figures say which seeds they came from."""
+    results = tmp_path / "RESULTS.md"
+    body = "Split `test`: dataset seeds 4101, 4102, 4103 (test).\n\n### toolcap\n\n| a |\n\n### shaft\n\n| b |"
+    _results.record_section("pose", "Pose", body, path=results)
+    kept = _results.kept_object_subsections("pose", ("toolcap", "shaft"), ["toolcap"], path=results)
+    assert "on dataset seeds 4101, 4102, 4103; the run above measured toolcap only" in kept["shaft"]
+    _results.record_section("pose", "Pose", "Split: test.\n\n### toolcap\n\n| a |", path=results)
+    # A section whose split line names no seeds: the note names none either.
+    unnamed = _results.kept_object_subsections("pose", ("toolcap", "shaft"), ["shaft"], path=results)["toolcap"]
+    assert "kept from the run of" in unnamed and "dataset seeds" not in unnamed
