@@ -1,5 +1,6 @@
 """Shared helpers for benchmark scripts: record a result section in benchmarks/RESULTS.md, and
-replace a generated block of another document (README.md, docs/) with figures a benchmark computed.
+replace a generated block of another document (README.md, docs/) with figures a benchmark computed, and
+measure how many cores other processes kept busy while a benchmark timed something.
 
 Each benchmark owns its sections and blocks, delimited by HTML comments, which it replaces on every run.
 A section header records the exact command, the machine, the date and the commit, so every
@@ -15,6 +16,7 @@ import re
 import shlex
 import subprocess
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -104,6 +106,41 @@ def utc_now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
 
 
+def _machine_busy_seconds() -> float | None:
+    """CPU seconds all processes have spent busy since boot (Linux /proc/stat), or None elsewhere."""
+    try:
+        with open("/proc/stat") as f:
+            ticks = [int(v) for v in f.readline().split()[1:9]]
+    except (OSError, ValueError):
+        return None
+    idle = ticks[3] + ticks[4]  # idle + iowait
+    return (sum(ticks) - idle) / os.sysconf("SC_CLK_TCK")
+
+
+class OtherProcessLoad:
+    """Average number of CPU cores that *other* processes kept busy while the block ran.
+
+    Timings on a shared machine are only meaningful when this is near 0; it is reported
+    next to the figures so a reader can tell.
+    """
+
+    def __enter__(self) -> OtherProcessLoad:
+        self.wall = time.perf_counter()
+        self.busy = _machine_busy_seconds()
+        self.own = sum(os.times()[:2])
+        self.cores: float | None = None
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        busy = _machine_busy_seconds()
+        if busy is not None and self.busy is not None:
+            own = sum(os.times()[:2]) - self.own
+            self.cores = max(0.0, (busy - self.busy - own) / (time.perf_counter() - self.wall))
+
+    def describe(self) -> str:
+        return "unknown" if self.cores is None else f"{self.cores:.2f}"
+
+
 def _section_pattern(name: str) -> re.Pattern[str]:
     """RESULTS.md's section ``name``, from its begin comment to its end comment and the newline after."""
     return re.compile(rf"<!-- begin {re.escape(name)} -->(.*?)<!-- end {re.escape(name)} -->\n?", re.S)
@@ -122,6 +159,31 @@ def section_origin(text: str) -> dict[str, str]:
     return {key: match.group(1).strip() if match else "not recorded" for key, match in fields.items()}
 
 
+_SPLIT_SEEDS = re.compile(r"^Split `[^`]+`: dataset seeds ([0-9][0-9, ]*[0-9])", re.M)
+
+
+def split_line(split: str, seeds: Sequence[int], spent: Sequence[int], trained_on_seed_0: bool = True) -> str:
+    """The opening of a section's split line: which split (``"test"`` or ``"dev"``), its dataset seeds, what
+    they may be used for, the spent seeds and (where ``trained_on_seed_0``) the shipped networks' training seed,
+    e.g. ``Split `test`: dataset seeds 6101, 6102, 6103 (the test seeds: ...; spent: 1000)``. The caller goes on
+    with the sizes and protocol; :func:`split_seeds` reads the seeds back."""
+    role = (
+        "the test seeds: no decision about data, networks or training has used them"
+        if split == "test"
+        else "the development seeds, for decisions; the README and the docs quote the test split"
+    )
+    trained = "; the shipped networks were trained on seed 0" if trained_on_seed_0 else ""
+    seed_list, spent_list = ", ".join(map(str, seeds)), ", ".join(map(str, spent))
+    return f"Split `{split}`: dataset seeds {seed_list} ({role}; spent: {spent_list}{trained})"
+
+
+def split_seeds(text: str) -> str | None:
+    """The dataset seeds of the first split line (:func:`split_line`) in ``text``, as written (``"6101, 6102,
+    6103"``); None where ``text`` has none."""
+    match = _SPLIT_SEEDS.search(text)
+    return None if match is None else match.group(1)
+
+
 def kept_object_subsections(
     name: str, objects: Sequence[str], measured: Sequence[str], path: Path = RESULTS_PATH
 ) -> dict[str, str]:
@@ -135,8 +197,8 @@ def kept_object_subsections(
         return {}
     origin = section_origin(text)
     # A run on other seeds (the test seeds renewed) must not lend its split line to figures it did not measure.
-    seeds = re.search(r"dataset seeds ([0-9][0-9, ]*[0-9])", text)
-    on_seeds = f" on dataset seeds {seeds.group(1)}" if seeds else ""
+    seeds = split_seeds(text)
+    on_seeds = f" on dataset seeds {seeds}" if seeds else ""
     starts = {}
     for object_name in objects:
         heading = re.search(rf"^### {re.escape(object_name)}\b", text, re.M)

@@ -39,7 +39,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _results import FIGURES, freeze_commit_description, record_section  # noqa: E402
+from _results import FIGURES, freeze_commit_description, record_section, split_line  # noqa: E402
 
 from don_gym.bin_benchmark import (  # noqa: E402
     ORACLE_DESCRIPTORS_METHOD,
@@ -245,13 +245,8 @@ def tracking(args: argparse.Namespace, split: str) -> None:
         width, height = image_size
         size_note = "the quick run's tiny size" if args.quick else "the networks' training size"
         body = (
-            f"Split `{split}`: dataset seeds {', '.join(map(str, seeds))} "
-            + (
-                "(the test seeds: no decision about data, networks or training has used them; "
-                if split == "test"
-                else "(the development seeds, for decisions; "
-            )
-            + f"spent: {', '.join(map(str, SPENT_SEEDS))}), {scenes} piles x {frames} frames each, "
+            split_line(split, seeds, SPENT_SEEDS, trained_on_seed_0=False)
+            + f", {scenes} piles x {frames} frames each, "
             f"{len(seeds) * scenes} piles of {' + '.join(f'{n} {p}s' for p, n in PARTS)}, pooled, {width}x{height} "
             f"({size_note}), sensor `{SENSOR}`, backgrounds `{VARIETY['backgrounds']}` and lighting "
             f"`{VARIETY['lighting']}` (those of the multi-part networks' training data). Protocol "

@@ -25,20 +25,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _results import record_section  # noqa: E402
+from _results import OtherProcessLoad, record_section  # noqa: E402
 
 import don_gym  # noqa: E402,F401  (registers the env ids)
 from don_gym.sim.bullet import silence_c_stdout  # noqa: E402
-
-
-def _busy_jiffies() -> tuple[int, int]:
-    """(all non-idle jiffies of the machine, this process's jiffies)."""
-    with open("/proc/stat") as f:
-        fields = [int(v) for v in f.readline().split()[1:]]
-    busy = sum(fields) - fields[3] - fields[4]  # minus idle and iowait
-    times = os.times()
-    own = int(round((times.user + times.system) * os.sysconf("SC_CLK_TCK")))
-    return busy, own
 
 
 def measure(env: gym.Env, steps: int, seed: int) -> dict[str, float]:
@@ -46,16 +36,14 @@ def measure(env: gym.Env, steps: int, seed: int) -> dict[str, float]:
     env.reset(seed=seed)
     env.action_space.seed(seed)
     actions = [env.action_space.sample() for _ in range(steps)]
-    busy0, own0 = _busy_jiffies()
-    wall0, cpu0 = time.perf_counter(), time.process_time()
-    for action in actions:
-        _, _, terminated, truncated, _ = env.step(action)
-        if terminated or truncated:
-            env.reset()
-    wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
-    busy1, own1 = _busy_jiffies()
-    others = ((busy1 - busy0) - (own1 - own0)) / os.sysconf("SC_CLK_TCK") / wall
-    return {"wall": steps / wall, "cpu": steps / cpu, "others": max(0.0, others)}
+    with OtherProcessLoad() as load:
+        wall0, cpu0 = time.perf_counter(), time.process_time()
+        for action in actions:
+            _, _, terminated, truncated, _ = env.step(action)
+            if terminated or truncated:
+                env.reset()
+        wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+    return {"wall": steps / wall, "cpu": steps / cpu, "others": load.cores or 0.0}
 
 
 def summarise(rounds: list[dict[str, float]]) -> dict[str, float]:

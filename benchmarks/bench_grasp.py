@@ -45,6 +45,7 @@ from _results import (  # noqa: E402
     record_section,
     replace_block,
     require_blocks,
+    split_line,
     utc_now,
 )
 
@@ -258,13 +259,7 @@ def tracking(args: argparse.Namespace, work: Path) -> tuple[str, dict[str, dict[
                 + margin_comparison_table(summaries[object_name], whole.summary())
             )
     header = (
-        f"Split `{args.split}`: dataset seeds {', '.join(map(str, seeds))} "
-        + (
-            "(the test seeds: no decision about data, networks or training has used them; "
-            if args.split == "test"
-            else "(the development seeds, for decisions; the README and docs/reproduction.md quote the test split; "
-        )
-        + f"spent: {', '.join(map(str, SPENT_SEEDS))}; the shipped networks were trained on seed 0), "
+        split_line(args.split, seeds, SPENT_SEEDS) + ", "
         f"{args.scenes} scenes x {args.frames} frames each, {len(seeds) * args.scenes} scenes per object, pooled, "
         f"at the networks' training size ({', '.join(sizes)}), sensor `d435`. Protocol (`don_gym.evaluation`): "
         f"{args.points} reference pixels per scene on the object in the frame showing most of it, their "

@@ -33,7 +33,14 @@ from typing import Any
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _results import FIGURES, freeze_commit_description, kept_object_subsections, record_section  # noqa: E402
+from _results import (  # noqa: E402
+    FIGURES,
+    OtherProcessLoad,
+    freeze_commit_description,
+    kept_object_subsections,
+    record_section,
+    split_line,
+)
 
 from don_gym.build import build_evaluation_datasets  # noqa: E402
 from don_gym.evaluation import FRAMES_PER_SCENE, SCENES_PER_SEED, SPENT_SEEDS, SPLIT_SEEDS  # noqa: E402
@@ -88,7 +95,9 @@ def run_object(args: argparse.Namespace, work: Path, object_name: str, publish: 
     )
     build_s = time.perf_counter() - start
     start = time.perf_counter()
-    results = evaluate_pose(datasets, ["oracle", *networks], depths=DEPTHS, progress=not args.quick)
+    # The times per image are wall-clock: a reader needs to know whether other work shared the cores.
+    with OtherProcessLoad() as load:
+        results = evaluate_pose(datasets, ["oracle", *networks], depths=DEPTHS, progress=not args.quick)
     evaluation_s = time.perf_counter() - start
     parts = []
     for depth, result in results.items():
@@ -112,8 +121,9 @@ def run_object(args: argparse.Namespace, work: Path, object_name: str, publish: 
         parts.append("\n".join(lines))
     parts[-1] += (
         f"\n\n{object_name}: {sum(len(r.estimates) for r in results.values())} method x depth runs; datasets built "
-        f"in {build_s:.0f} s, both depths evaluated in one pass in {evaluation_s:.0f} s; BOP results files and "
-        f"pose.json in `{work}`."
+        f"in {build_s:.0f} s, both depths evaluated in one pass in {evaluation_s:.0f} s (times per image are "
+        f"wall-clock; CPU cores kept busy by other processes meanwhile: {load.describe()}, 0 = the machine was "
+        f"ours); BOP results files and pose.json in `{work}`."
     )
     return "\n\n".join(parts)
 
@@ -183,13 +193,7 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="don_gym_bench_pose_")) if args.quick else Path(args.work)
     publish = not args.quick and args.split == "test"
     header = (
-        f"Split `{args.split}`: dataset seeds {', '.join(map(str, seeds))} "
-        + (
-            "(the test seeds: no decision about data, networks or training has used them; "
-            if args.split == "test"
-            else "(development seeds, for decisions; "
-        )
-        + f"spent: {', '.join(map(str, SPENT_SEEDS))}; the shipped networks were trained on seed 0), "
+        split_line(args.split, seeds, SPENT_SEEDS) + ", "
         f"{args.scenes} scenes x {args.frames} frames each, pooled, at the networks' training size, sensor `d435`. "
         "Protocol (`don_gym.pose_evaluation`): one pose estimate of the part per frame and method "
         "(`don_gym.pose`: part pixels matched to the part's surface rings in descriptor space, ratio test; with "

@@ -38,7 +38,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _results import record_section  # noqa: E402
+from _results import OtherProcessLoad, record_section  # noqa: E402
 
 from don_gym.augment import AugmentConfig  # noqa: E402
 from don_gym.build import DatasetConfig, build_dataset  # noqa: E402
@@ -56,41 +56,6 @@ FRAME_SIZE = (640, 480)
 CROP_SIZE = (128, 128)
 LOADER_TARGET = 1.4
 GPU_WAIT_TARGET = 0.10
-
-
-def _machine_busy_seconds() -> float | None:
-    """CPU seconds all processes have spent busy since boot (Linux /proc/stat), or None elsewhere."""
-    try:
-        with open("/proc/stat") as f:
-            ticks = [int(v) for v in f.readline().split()[1:9]]
-    except (OSError, ValueError):
-        return None
-    idle = ticks[3] + ticks[4]  # idle + iowait
-    return (sum(ticks) - idle) / os.sysconf("SC_CLK_TCK")
-
-
-class OtherProcessLoad:
-    """Average number of CPU cores that *other* processes kept busy while the block ran.
-
-    Timings on a shared machine are only meaningful when this is near 0; it is reported
-    next to the figures so a reader can tell.
-    """
-
-    def __enter__(self) -> OtherProcessLoad:
-        self.wall = time.perf_counter()
-        self.busy = _machine_busy_seconds()
-        self.own = sum(os.times()[:2])
-        self.cores: float | None = None
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        busy = _machine_busy_seconds()
-        if busy is not None and self.busy is not None:
-            own = sum(os.times()[:2]) - self.own
-            self.cores = max(0.0, (busy - self.busy - own) / (time.perf_counter() - self.wall))
-
-    def describe(self) -> str:
-        return "unknown" if self.cores is None else f"{self.cores:.2f}"
 
 
 def wait_for_quiet_machine(max_wait_s: float, threshold_cores: float = 0.2) -> None:

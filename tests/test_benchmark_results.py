@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -208,3 +209,47 @@ def test_a_kept_part_names_the_seeds_it_was_measured_on(tmp_path: Path) -> None:
     # A section whose split line names no seeds: the note names none either.
     unnamed = _results.kept_object_subsections("pose", ("toolcap", "shaft"), ["shaft"], path=results)["toolcap"]
     assert "kept from the run of" in unnamed and "dataset seeds" not in unnamed
+
+
+def test_the_split_line_reads_back_its_seeds() -> None:
+    """The three benchmarks that record a split write it with one formatter, and the kept-part note reads the
+    seeds back from it: writer and reader agree for either split, with or without the training-seed remark."""
+    test = _results.split_line("test", (6101, 6102, 6103), (1000, 4101))
+    assert test.startswith("Split `test`: dataset seeds 6101, 6102, 6103 (the test seeds")
+    assert test.endswith("spent: 1000, 4101; the shipped networks were trained on seed 0)")
+    dev = _results.split_line("dev", (3101,), (1000,), trained_on_seed_0=False)
+    assert "development seeds" in dev and dev.endswith("spent: 1000)")
+    assert _results.split_seeds(f"# Tracking\n\n{test}, 8 scenes x 12 frames each.") == "6101, 6102, 6103"
+    assert _results.split_seeds(dev + ", 4 piles") == "3101"
+    assert _results.split_seeds("No split here; dataset seeds 1, 2 in passing.") is None
+
+
+def test_other_process_load_counts_other_processes_not_this_one() -> None:
+    """The load meter that the timing benchmarks print beside their times: a process spinning beside the block
+    counts as about one core, the block's own work does not."""
+
+    def spin(seconds: float) -> None:
+        end = time.perf_counter() + seconds
+        while time.perf_counter() < end:
+            pass
+
+    with _results.OtherProcessLoad() as quiet:
+        time.sleep(1.0)
+    with _results.OtherProcessLoad() as own:
+        spin(1.0)
+    spinner = subprocess.Popen(
+        [sys.executable, "-c", "import time\nend = time.time() + 3\nwhile time.time() < end: pass"]
+    )
+    try:
+        time.sleep(0.5)
+        with _results.OtherProcessLoad() as other:
+            time.sleep(1.5)
+    finally:
+        spinner.kill()
+        spinner.wait()
+    if quiet.cores is None:
+        pytest.skip("no /proc/stat on this platform")
+    assert own.cores is not None and other.cores is not None
+    assert own.cores < quiet.cores + 0.5
+    assert other.cores > quiet.cores + 0.3
+    assert other.describe() == f"{other.cores:.2f}"
