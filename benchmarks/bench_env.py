@@ -43,7 +43,9 @@ def measure(env: gym.Env, steps: int, seed: int) -> dict[str, float]:
             if terminated or truncated:
                 env.reset()
         wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
-    return {"wall": steps / wall, "cpu": steps / cpu, "others": load.cores or 0.0}
+    # Unknown (no /proc/stat) shows as nan rather than as a machine that was ours.
+    others = float("nan") if load.cores is None else load.cores
+    return {"wall": steps / wall, "cpu": steps / cpu, "others": others}
 
 
 def summarise(rounds: list[dict[str, float]]) -> dict[str, float]:
