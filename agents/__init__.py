@@ -11,7 +11,7 @@ Installed as ``don_gym.agents``.
       obs, info = env.reset(options={"pose_id": 0})
       obs, reward, terminated, truncated, info = env.step(agent.act(obs))
 
-- :class:`PoseGraspAgent`: the same descriptors through a 6D pose estimate (:mod:`don_gym.pose`): the
+- :class:`PoseGraspAgent`: the same descriptors through a 6D pose estimate (:mod:`don_gym.perception.pose`): the
   grasp point and +axis yaw of the estimated pose; ``PoseGraspAgent(env, model="oracle")`` likewise.
 
 - :class:`BinAxisGraspAgent` and :class:`BinOracleAgent`: pick one part's instances out of a bin

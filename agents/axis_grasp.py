@@ -1,6 +1,6 @@
 """The scripted two-descriptor axis-grasp agent (Kupcsik et al. 2021, "Grasp Pose Prediction").
 
-The agent tracks two keypoints on the part's axis ends (:func:`don_gym.descriptor_sources.axis_end_targets`:
+The agent tracks two keypoints on the part's axis ends (:func:`don_gym.perception.descriptor_sources.axis_end_targets`:
 the outer-surface rings at 20 % and 80 % of the axial length) and turns them into the
 ``control="grasp"`` action ``[x, y, z, yaw]``:
 
@@ -33,7 +33,11 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from don_gym.descriptor_sources import (
+from don_gym.errors import DonGymError
+from don_gym.geometry import CameraIntrinsics
+from don_gym.learning.model import DenseObjectNet
+from don_gym.objects import ObjectModel
+from don_gym.perception.descriptor_sources import (
     DEFAULT_AXIS_FRACTIONS,
     AxisEndTargets,
     DescriptorSource,
@@ -44,11 +48,7 @@ from don_gym.descriptor_sources import (
     env_object_model,
     load_descriptor_source,
 )
-from don_gym.errors import DonGymError
-from don_gym.geometry import CameraIntrinsics
-from don_gym.keypoints import DEFAULT_CONFIDENCE_SIGMA, DEFAULT_SOFT_TEMPERATURE, locate_keypoints
-from don_gym.model import DenseObjectNet
-from don_gym.objects import ObjectModel
+from don_gym.perception.keypoints import DEFAULT_CONFIDENCE_SIGMA, DEFAULT_SOFT_TEMPERATURE, locate_keypoints
 from don_gym.sim.task import grasp_axial_position_m
 from don_gym.wrappers.keypoints import KeypointObservation
 
@@ -110,10 +110,11 @@ class AxisGraspAgent:
             at a fixed seed and pose (reset it after). Given, it is used for every model, which also
             takes out a supervised network's systematic bias (its own output at the rings, not the
             descriptors it was trained towards).
-        fractions: axial fractions of the two keypoints (:func:`~don_gym.descriptor_sources.axis_end_targets`).
+        fractions: axial fractions of the two keypoints
+        (:func:`~don_gym.perception.descriptor_sources.axis_end_targets`).
         descriptor_dim: required descriptor size (None: the model's).
         window_m, temperature, confidence_sigma: keypoint matching (see
-            :func:`don_gym.keypoints.locate_keypoints`); window None = the rings' diameter.
+            :func:`don_gym.perception.keypoints.locate_keypoints`); window None = the rings' diameter.
 
     :meth:`from_parts` builds one without an env from an object, a source and reference descriptors.
     """

@@ -6,8 +6,8 @@ of those instances with the same rule (:func:`rank_grasps`):
 
 - :class:`BinAxisGraspAgent` perceives from the descriptor image alone (any descriptor source of the target
   part: the oracle, the part's own network, a network of several parts): for each of the two axis-end
-  reference descriptors (:func:`~don_gym.descriptor_sources.axis_end_targets`) the local minima of the
-  descriptor distance below a threshold are candidate ring pixels (:func:`~don_gym.keypoints.local_matches`);
+  reference descriptors (:func:`~don_gym.perception.descriptor_sources.axis_end_targets`) the local minima of the
+  descriptor distance below a threshold are candidate ring pixels (:func:`~don_gym.perception.keypoints.local_matches`);
   a minus-end and a plus-end candidate make an instance when their axis points lie the part's ring spacing
   apart in 3D (with the observed depth) and the depth between them shows no gap (two rings of neighbouring
   instances have the bin's floor or another part between them) (:func:`pair_ring_candidates`); a part standing
@@ -35,7 +35,11 @@ import gymnasium as gym
 import numpy as np
 
 from don_gym.agents.axis_grasp import surface_to_axis
-from don_gym.descriptor_sources import (
+from don_gym.errors import DonGymError
+from don_gym.geometry import CameraIntrinsics, backproject_depth, transform_points
+from don_gym.learning.model import DenseObjectNet
+from don_gym.objects import ObjectModel
+from don_gym.perception.descriptor_sources import (
     DEFAULT_AXIS_FRACTIONS,
     AxisEndTargets,
     DescriptorSource,
@@ -47,11 +51,12 @@ from don_gym.descriptor_sources import (
     load_descriptor_source,
     reference_descriptors_for,
 )
-from don_gym.errors import DonGymError
-from don_gym.geometry import CameraIntrinsics, backproject_depth, transform_points
-from don_gym.keypoints import DEFAULT_SOFT_TEMPERATURE, descriptor_distances, local_matches, robust_point_from_depth
-from don_gym.model import DenseObjectNet
-from don_gym.objects import ObjectModel
+from don_gym.perception.keypoints import (
+    DEFAULT_SOFT_TEMPERATURE,
+    descriptor_distances,
+    local_matches,
+    robust_point_from_depth,
+)
 from don_gym.sim.bin_task import (
     FINGER_BELOW_GRASP_M,
     FINGER_HALF_WIDTH_M,
@@ -493,7 +498,8 @@ class BinAxisGraspAgent(_BinAgentBase):
     Args:
         env: a bin env (:class:`~don_gym.sim.bin_env.BinPickEnv`) with images; its target part is the one picked.
         model: ``"oracle"`` (every instance of the part rendered from the true poses,
-            :class:`~don_gym.descriptor_sources.PileOracleDescriptors`), a shipped network, a checkpoint (of the
+            :class:`~don_gym.perception.descriptor_sources.PileOracleDescriptors`), a shipped network, a checkpoint
+            (of the
             part, or of several parts including it), a DenseObjectNet or a DescriptorSource of the part.
         reference_frame: where a network whose descriptor space is not the optimal field reads its reference
             descriptors (None: a single-part pick env of the target part, reset at the fixed reference pose).
@@ -501,7 +507,8 @@ class BinAxisGraspAgent(_BinAgentBase):
         match_fraction: candidate ring matches lie below this fraction of the distance between the two reference
             descriptors.
         temperature: soft-match weight scale (in the part's own field's descriptor units: a network of several
-            parts scales it by :attr:`~don_gym.descriptor_sources.DescriptorSource.descriptor_scale`) that moves
+            parts scales it by :attr:`~don_gym.perception.descriptor_sources.DescriptorSource.descriptor_scale`)
+            that moves
             each candidate to its ring's arc middle.
     """
 

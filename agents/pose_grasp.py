@@ -2,7 +2,7 @@
 pose estimate instead of two keypoints (issue #34: "the two uses of the same descriptors").
 
 Per observation: the part's pose in the camera frame from the descriptor image and the depth
-(:func:`don_gym.pose.estimate_pose`: matches to the part's surface, 3D-3D RANSAC and ICP), into the world
+(:func:`don_gym.perception.pose.estimate_pose`: matches to the part's surface, 3D-3D RANSAC and ICP), into the world
 with the *reported* camera pose (as a real robot knows it, as the axis agent does). The grasp point is the
 env's (:func:`don_gym.sim.task.grasp_axial_position_m`: along the +axis from the centre of mass) placed by
 that pose, on the axis, so its ``z`` is the axis height the grasp action expects; the yaw is that of the
@@ -19,21 +19,21 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from don_gym.descriptor_sources import (
+from don_gym.errors import DonGymError
+from don_gym.geometry import CameraIntrinsics, invert_transform
+from don_gym.learning.model import DenseObjectNet
+from don_gym.perception.descriptor_sources import (
     REFERENCE_SEED,
     DescriptorSource,
     ReferenceFrame,
     env_object_model,
     load_descriptor_source,
 )
-from don_gym.errors import DonGymError
-from don_gym.geometry import CameraIntrinsics, invert_transform
-from don_gym.model import DenseObjectNet
-from don_gym.pose import PoseConfig, PoseEstimate, PoseTargets, estimate_pose, pose_targets_for
+from don_gym.perception.pose import PoseConfig, PoseEstimate, PoseTargets, estimate_pose, pose_targets_for
 from don_gym.sim.task import grasp_axial_position_m
 from don_gym.wrappers.descriptors import DescriptorObservation
 
-#: Fixed poses of the env whose frames (at :data:`~don_gym.descriptor_sources.REFERENCE_SEED`) give a
+#: Fixed poses of the env whose frames (at :data:`~don_gym.perception.descriptor_sources.REFERENCE_SEED`) give a
 #: network its reference views: the part lying two ways.
 REFERENCE_POSE_IDS: tuple[int, ...] = (0, 4)
 
@@ -63,7 +63,7 @@ class PoseGraspAgent:
 
     Args:
         env: a don_gym env with images and depth (``control="grasp"`` to act with the action).
-        model: any model :func:`~don_gym.descriptor_sources.load_descriptor_source` accepts.
+        model: any model :func:`~don_gym.perception.descriptor_sources.load_descriptor_source` accepts.
         config: pose estimation settings.
         pose_ids: the env's fixed poses whose frames give the reference views (networks; the oracle matches
             its field and needs none).

@@ -24,7 +24,6 @@ batched envs, the DON on the GPU).
 from __future__ import annotations
 
 import csv
-import functools
 import json
 import platform
 import time
@@ -38,18 +37,52 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from don_gym.agents.rl_envs import (
+    ENV_MAKERS,
+    VECTORIZE,
+    check_n_envs,
+    make_batched_sac_vec_env,
+    make_batched_vec_env,
+    make_image_env,
+    make_ppo_env,
+    make_sac_env,
+    make_vec_env,
+)
 from don_gym.errors import DonGymError
 from don_gym.io import atomic_path, write_text_atomic
 from don_gym.sim.task import OUTCOMES
-from don_gym.wrappers.goals import GOALS, KeypointGoal, make_goal_env, make_keypoint_env
-from don_gym.wrappers.images import DescriptorImage
-from don_gym.wrappers.rl import POSITION_UNIT_M, WORKSPACE_CENTRE_M, KeypointFeatures, KeypointGraspAction
+from don_gym.wrappers.rl import POSITION_UNIT_M, WORKSPACE_CENTRE_M
+
+# The env factories live in don_gym.agents.rl_envs; offered here too, beside the training that uses them.
+__all__ = [
+    "ALGORITHMS",
+    "DEFAULT_ALGO_KWARGS",
+    "ENV_MAKERS",
+    "RL_INSTALL_HINT",
+    "RUN_FILES",
+    "VECTORIZE",
+    "EvaluationResult",
+    "LearningCurve",
+    "RLTrainResult",
+    "evaluate",
+    "make_batched_sac_vec_env",
+    "make_batched_vec_env",
+    "make_image_env",
+    "make_ppo_env",
+    "make_sac_env",
+    "make_vec_env",
+    "model_policy",
+    "random_policy",
+    "require_sb3",
+    "save_checkpoint",
+    "saved_progress",
+    "train",
+    "write_run_outputs",
+]
 
 #: The pip command that installs stable-baselines3 for these baselines.
 RL_INSTALL_HINT = 'pip install "don-gym[rl]"'
 ALGORITHMS = ("ppo", "sac", "ppo-images")
-#: How :func:`train` steps several envs.
-VECTORIZE = ("dummy", "subproc", "batched", "batched-async")
 #: Files a run directory holds (see :func:`train`).
 RUN_FILES = {
     "config": "config.json",
@@ -73,101 +106,6 @@ def require_sb3() -> Any:
         ) from exc
     return stable_baselines3
 
-
-# ------------------------------------------------------------------------------- the envs
-def make_ppo_env(
-    object: str | Path = "toolcap",  # noqa: A002 - the env's own kwarg name
-    keypoint_model: str | Path = "oracle",
-    image_size: tuple[int, int] = (160, 120),
-    sensor: str = "d435",
-    reward_type: str = "dense",
-    action_frame: str = "axis",
-    keypoints: str = "don",
-    noise: Any = None,
-    keypoint_kwargs: dict[str, Any] | None = None,
-) -> gym.Env:
-    """The PPO baseline's env: ``control="grasp"`` with keypoints, flat observations
-    (:class:`~don_gym.wrappers.KeypointFeatures`) and normalised actions in a frame set by the keypoints
-    (:class:`~don_gym.wrappers.KeypointGraspAction`; ``"axis"``: residuals about the keypoints' axis,
-    ``"keypoints"``: about their centroid with a world yaw, ``"world"``: the whole action box).
-
-    ``keypoint_model``: "oracle" (keypoints from descriptors rendered at the true pose: a check of
-    the pipeline, not a perception result), a shipped DON name such as "toolcap/supervised-edge",
-    or a checkpoint path; ``keypoints``/``noise``: see the module docstring. ``reward_type="dense"``
-    gives failed grasps a graded penalty (the success rate is measured either way by ``info["is_success"]``).
-    """
-    env = make_keypoint_env(
-        object, keypoints, keypoint_model, noise, image_size, keypoint_kwargs=keypoint_kwargs,
-        control="grasp", sensor=sensor, reward_type=reward_type,
-    )  # fmt: skip
-    env = KeypointGraspAction(env, frame=action_frame)
-    return KeypointFeatures(env, relative_to="centroid", robot_state=False)
-
-
-def _sac_head(env: gym.Env, goal: str | None) -> gym.Env:
-    if goal is None:
-        return KeypointFeatures(env, relative_to="tcp", robot_state=True)
-    return KeypointGoal(env, goal=goal)
-
-
-def make_sac_env(
-    object: str | Path = "toolcap",  # noqa: A002 - the env's own kwarg name
-    keypoint_model: str | Path = "oracle",
-    image_size: tuple[int, int] = (160, 120),
-    sensor: str = "d435",
-    reward_type: str = "dense",
-    max_steps: int = 100,
-    keypoints: str = "don",
-    noise: Any = None,
-    goal: str | None = None,
-    keypoint_kwargs: dict[str, Any] | None = None,
-    hand_starts: dict[str, float] | None = None,
-) -> gym.Env:
-    """The SAC baseline's env: ``control="ee"``, keypoints of every wrist-camera frame (relative to the
-    TCP) plus the robot state as one flat vector; the keypoints move with the camera and vanish when
-    the part leaves the view, their confidences let the policy tell. ``goal`` ("place" or the "lift"
-    sub-task): the goal-conditioned dict of :class:`~don_gym.wrappers.KeypointGoal` for HER, with its
-    sparse goal reward instead of ``reward_type``'s: the env of
-    :func:`~don_gym.wrappers.goals.make_goal_env`, which the registered ``DONToolcapLift-v0`` makes.
-    ``hand_starts``: shares of episodes that start with the hand at or on the part
-    (:class:`~don_gym.wrappers.HandStarts`; for training)."""
-    if goal is not None and goal not in GOALS:
-        raise DonGymError(f"goal={goal!r} is unknown; expected None or one of {list(GOALS)}")
-    if goal is not None:
-        return make_goal_env(
-            object, goal, keypoints, keypoint_model, noise, image_size, max_steps, hand_starts, keypoint_kwargs,
-            sensor=sensor, reward_type=reward_type,
-        )  # fmt: skip
-    env = make_keypoint_env(
-        object, keypoints, keypoint_model, noise, image_size, hand_starts, keypoint_kwargs,
-        control="ee", sensor=sensor, reward_type=reward_type, max_steps=max_steps,
-    )  # fmt: skip
-    return _sac_head(env, goal)
-
-
-def make_image_env(
-    object: str | Path = "toolcap",  # noqa: A002 - the env's own kwarg name
-    keypoint_model: str | Path = "oracle",
-    image_size: tuple[int, int] = (160, 120),
-    cnn_size: tuple[int, int] = (80, 60),
-    sensor: str = "d435",
-    reward_type: str = "dense",
-) -> gym.Env:
-    """The descriptor-image baseline's env: ``control="grasp"``; the observation is the descriptor image
-    of ``keypoint_model`` (any model :class:`~don_gym.wrappers.DescriptorObservation` takes) as uint8,
-    resized to ``cnn_size`` (:class:`~don_gym.wrappers.DescriptorImage`), for SB3's CNN; the action
-    spans the env's action box in [-1, 1]^4 (x, y, z, yaw): the policy must find the part in the image."""
-    from don_gym.wrappers import DescriptorObservation
-
-    env = make_keypoint_env(
-        object, None, image_size=image_size, control="grasp", sensor=sensor, reward_type=reward_type
-    )
-    env = DescriptorImage(DescriptorObservation(env, model=keypoint_model), size=cnn_size, keep=())
-    ones = np.ones(env.action_space.shape, dtype=np.float32)
-    return gym.wrappers.RescaleAction(env, -ones, ones)
-
-
-ENV_MAKERS: dict[str, Callable[..., gym.Env]] = {"ppo": make_ppo_env, "sac": make_sac_env, "ppo-images": make_image_env}
 
 #: Defaults sized for a short CPU budget. PPO on grasp: every step is a whole episode (a one-step
 #: bandit), so small rollouts keep updates frequent; gamma does not matter; a small initial action
@@ -217,160 +155,6 @@ DEFAULT_ALGO_KWARGS: dict[str, dict[str, Any]] = {
         "policy_kwargs": {"net_arch": [64, 64], "log_std_init": -0.5},
     },
 }
-
-
-# ---------------------------------------------------------------- batched vector envs for SB3
-class _SubEnvProxy(gym.Env):
-    """One sub-env of a vector env as seen by per-env wrappers: it returns what the vector env
-    produced for it (set by :class:`BatchedVecEnv`) and carries the attributes wrappers look up."""
-
-    def __init__(self, observation_space: spaces.Space, action_space: spaces.Space, attributes: dict[str, Any]):
-        self.observation_space = observation_space
-        self.action_space = action_space
-        for name, value in attributes.items():
-            setattr(self, name, value)
-        self.pending_reset: tuple[Any, dict] | None = None
-        self.pending_step: tuple[Any, float, bool, bool, dict] | None = None
-
-    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
-        out, self.pending_reset = self.pending_reset, None
-        if out is None:
-            raise RuntimeError("sub-env reset outside BatchedVecEnv")
-        return out
-
-    def step(self, action: Any):
-        out, self.pending_step = self.pending_step, None
-        if out is None:
-            raise RuntimeError("sub-env step outside BatchedVecEnv")
-        return out
-
-
-#: Sub-env attributes the per-env wrappers on top of a batched vector env may look up.
-PROXY_ATTRIBUTES = ("model", "control", "intrinsics", "max_steps", "render_mode", "image_size")
-
-
-def make_batched_vec_env(
-    vector_env: gym.vector.VectorEnv, head: Callable[[gym.Env], gym.Env], monitor: bool = True
-) -> Any:
-    """An SB3 VecEnv over a ``gymnasium.vector`` env made with ``autoreset_mode=SAME_STEP`` (e.g. a
-    :class:`~don_gym.wrappers.VectorKeypointObservation`): each sub-env gets ``head`` (observation and
-    reward wrappers only, such as :class:`~don_gym.wrappers.KeypointFeatures` or
-    :class:`~don_gym.wrappers.KeypointGoal`; actions pass through unchanged), wrapped in SB3's Monitor.
-    ``env_method`` reaches the heads (HER's ``compute_reward``)."""
-    from gymnasium.vector import AutoresetMode
-    from gymnasium.vector.utils import iterate
-    from stable_baselines3.common.monitor import Monitor
-    from stable_baselines3.common.vec_env import DummyVecEnv
-
-    from don_gym.wrappers.vector import unbatch_info
-
-    if vector_env.metadata.get("autoreset_mode") != AutoresetMode.SAME_STEP:
-        raise DonGymError("make_batched_vec_env needs a vector env made with autoreset_mode=AutoresetMode.SAME_STEP")
-    attributes = {}
-    for name in PROXY_ATTRIBUTES:
-        try:
-            attributes[name] = vector_env.unwrapped.get_attr(name)[0]
-        except AttributeError:
-            pass
-    proxies = [
-        _SubEnvProxy(vector_env.single_observation_space, vector_env.single_action_space, attributes)
-        for _ in range(vector_env.num_envs)
-    ]
-
-    def wrapped(proxy: _SubEnvProxy) -> Callable[[], gym.Env]:
-        env = head(proxy)
-        if monitor:
-            env = Monitor(env, info_keywords=("is_success",))
-        return lambda: env
-
-    class BatchedVecEnv(DummyVecEnv):
-        def reset(self):
-            seeds = None if all(s is None for s in self._seeds) else [s for s in self._seeds]
-            options = self._options[0] if self._options and self._options[0] else None
-            observations, infos = vector_env.reset(seed=seeds, options=options)
-            for i, obs in enumerate(iterate(vector_env.observation_space, observations)):
-                proxies[i].pending_reset = (obs, unbatch_info(infos, i))
-            return super().reset()
-
-        def step_async(self, actions: np.ndarray) -> None:
-            observations, rewards, terminations, truncations, infos = vector_env.step(np.asarray(actions))
-            final = np.asarray(infos.get("_final_obs", np.zeros(self.num_envs, bool)))
-            for i, obs in enumerate(iterate(vector_env.observation_space, observations)):
-                info = unbatch_info(infos, i)
-                for key in ("final_obs", "final_info"):
-                    info.pop(key, None)
-                if final[i]:
-                    final_info = unbatch_info(infos["final_info"], i)
-                    proxies[i].pending_step = (
-                        infos["final_obs"][i], float(rewards[i]), bool(terminations[i]), bool(truncations[i]),
-                        final_info,
-                    )  # fmt: skip
-                    proxies[i].pending_reset = (obs, info)
-                else:
-                    proxies[i].pending_step = (
-                        obs, float(rewards[i]), bool(terminations[i]), bool(truncations[i]), info
-                    )  # fmt: skip
-            super().step_async(actions)
-
-        def close(self) -> None:
-            super().close()
-            vector_env.close()
-
-    return BatchedVecEnv([wrapped(p) for p in proxies])
-
-
-def make_batched_sac_vec_env(
-    n_envs: int,
-    env_kwargs: dict[str, Any] | None = None,
-    asynchronous: bool = False,
-    device: str | None = None,
-    monitor: bool = True,
-) -> Any:
-    """The SAC env (:func:`make_sac_env` arguments in ``env_kwargs``, ``keypoints="don"``) as an SB3
-    VecEnv of ``n_envs`` sub-envs whose images go through the DON together, on ``device``."""
-    from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv
-
-    from don_gym.wrappers.vector import VectorKeypointObservation
-
-    _check_n_envs(n_envs)
-    kwargs = dict(env_kwargs or {})
-    if kwargs.get("keypoints", "don") != "don":
-        raise DonGymError(
-            f"batched envs run a DON; keypoints={kwargs['keypoints']!r} needs none (use vectorize='dummy')"
-        )
-    goal = kwargs.get("goal")
-    if goal is not None and goal not in GOALS:
-        raise DonGymError(f"goal={goal!r} is unknown; expected None or one of {list(GOALS)}")
-    base = functools.partial(
-        make_keypoint_env,
-        kwargs.get("object", "toolcap"),
-        None,
-        image_size=kwargs.get("image_size", (160, 120)),
-        hand_starts=kwargs.get("hand_starts"),
-        control="ee",
-        sensor=kwargs.get("sensor", "d435"),
-        reward_type=kwargs.get("reward_type", "dense"),
-        max_steps=kwargs.get("max_steps", 100),
-    )
-    vector_class = AsyncVectorEnv if asynchronous else SyncVectorEnv
-    vector_env = vector_class([base] * int(n_envs), autoreset_mode=AutoresetMode.SAME_STEP)
-    try:
-        keypoint_env = VectorKeypointObservation(
-            vector_env,
-            kwargs.get("keypoint_model", "oracle"),
-            keep_images=False,
-            device=device,
-            **(kwargs.get("keypoint_kwargs") or {}),
-        )
-    except Exception:
-        vector_env.close()
-        raise
-    return make_batched_vec_env(keypoint_env, functools.partial(_sac_head, goal=goal), monitor=monitor)
-
-
-def _check_n_envs(n_envs: Any) -> None:
-    if isinstance(n_envs, bool) or not isinstance(n_envs, (int, np.integer)) or int(n_envs) < 1:
-        raise DonGymError(f"n_envs={n_envs!r}: expected a positive number of envs")
 
 
 # ------------------------------------------------------------------------- learning curve
@@ -501,17 +285,11 @@ def _wall_s_before(run_dir: Path, saved_config: dict[str, Any]) -> float:
         return 0.0
 
 
-def _monitored(maker: Callable[..., gym.Env], env_kwargs: dict[str, Any]) -> gym.Env:
-    from stable_baselines3.common.monitor import Monitor
-
-    return Monitor(maker(**env_kwargs), info_keywords=("is_success",))
-
-
 @dataclass
 class RLTrainResult:
     """A trained baseline: the SB3 model, the :class:`LearningCurve` of its training episodes, the
     wall time in seconds of this call (``wall_s``) and of the whole run over its resumed sessions
-    (``run_wall_s``), and its run directory, if any (not :class:`don_gym.train.TrainResult`, a DON
+    (``run_wall_s``), and its run directory, if any (not :class:`don_gym.learning.train.TrainResult`, a DON
     training run)."""
 
     model: Any
@@ -572,34 +350,25 @@ def _algorithm_setup(algorithm: str, env_kwargs: dict[str, Any], algo_kwargs: di
     return ("PPO" if algorithm == "ppo" else "SAC"), "MlpPolicy", kwargs
 
 
-def make_vec_env(
-    algorithm: str,
-    n_envs: int,
-    seed: int,
-    env_kwargs: dict[str, Any],
-    vectorize: str | None = None,
-    don_device: str | None = None,
-) -> Any:
-    """The SB3 VecEnv :func:`train` trains on (``vectorize``: see :data:`VECTORIZE`; None: one env in
-    this process, or a subprocess per env; ``don_device``: where batched envs run the DON)."""
-    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+def _resumed_state(run_path: Path, config: dict[str, Any]) -> tuple[LearningCurve, float]:
+    """The learning curve and training time (s) of the run ``train(resume=True)`` continues, checked to be a
+    run of the same algorithm, envs and env settings."""
+    if not (run_path / RUN_FILES["last_model"]).is_file():
+        raise DonGymError(f"resume: {str(run_path)!r} holds no {RUN_FILES['last_model']} to resume from")
+    saved = json.loads((run_path / RUN_FILES["config"]).read_text())
+    differs = [k for k in ("algorithm", "n_envs", "env_kwargs") if saved.get(k) != config[k]]
+    if differs:
+        raise DonGymError(f"resume: {str(run_path)!r} was a run with other {differs}; start a new run_dir")
+    return LearningCurve.read_csv(run_path / RUN_FILES["last_curve"]), _wall_s_before(run_path, saved)
 
-    _check_n_envs(n_envs)
-    vectorize = vectorize or ("dummy" if int(n_envs) == 1 else "subproc")
-    if vectorize not in VECTORIZE:
-        raise DonGymError(f"vectorize={vectorize!r} is unknown; expected one of {list(VECTORIZE)}")
-    if vectorize.startswith("batched"):
-        if algorithm != "sac":
-            raise DonGymError(f"vectorize={vectorize!r} serves the SAC env (control='ee'), not {algorithm!r}")
-        vec_env = make_batched_sac_vec_env(
-            int(n_envs), env_kwargs, asynchronous=vectorize == "batched-async", device=don_device
-        )
-    else:
-        env_fn = functools.partial(_monitored, ENV_MAKERS[algorithm], dict(env_kwargs))
-        vec_class = SubprocVecEnv if vectorize == "subproc" else DummyVecEnv
-        vec_env = vec_class([env_fn] * int(n_envs))
-    vec_env.seed(int(seed))
-    return vec_env
+
+def _load_replay_buffer(model: Any, buffer: Path) -> None:
+    """The saved replay buffer into an off-policy ``model`` (PPO has none)."""
+    if getattr(model, "replay_buffer", None) is not None and buffer.is_file():
+        with warnings.catch_warnings():
+            # HER cuts the episode that was running at the save: the envs restart, as it assumes.
+            warnings.filterwarnings("ignore", message="The last trajectory in the replay buffer")
+            model.load_replay_buffer(buffer)
 
 
 def train(
@@ -633,7 +402,7 @@ def train(
     """
     if algorithm not in ALGORITHMS:
         raise DonGymError(f"algorithm={algorithm!r} is unknown; expected one of {list(ALGORITHMS)}")
-    _check_n_envs(n_envs)
+    check_n_envs(n_envs)
     if int(total_timesteps) < 1:
         raise DonGymError(f"total_timesteps={total_timesteps!r}: expected a positive number of env steps")
     if resume and run_dir is None:
@@ -658,18 +427,10 @@ def train(
         "seeds": {"algorithm": int(seed), "envs_first_reset": [int(seed) + i for i in range(int(n_envs))]},
         "versions": {"python": platform.python_version(), "stable_baselines3": sb3.__version__},
     }
-    curve = LearningCurve()
-    wall_s_before = 0.0
+    curve, wall_s_before = LearningCurve(), 0.0
     if resume:
+        curve, wall_s_before = _resumed_state(run_path, config)
         last = run_path / RUN_FILES["last_model"]
-        if not last.is_file():
-            raise DonGymError(f"resume: {str(run_path)!r} holds no {RUN_FILES['last_model']} to resume from")
-        saved = json.loads((run_path / RUN_FILES["config"]).read_text())
-        differs = [k for k in ("algorithm", "n_envs", "env_kwargs") if saved.get(k) != config[k]]
-        if differs:
-            raise DonGymError(f"resume: {str(run_path)!r} was a run with other {differs}; start a new run_dir")
-        curve = LearningCurve.read_csv(run_path / RUN_FILES["last_curve"])
-        wall_s_before = _wall_s_before(run_path, saved)
     elif run_path is not None:
         run_path.mkdir(parents=True, exist_ok=True)
     save_every = save_every or max(1, int(total_timesteps) // 10)
@@ -690,12 +451,7 @@ def train(
             # A new run, or one going on to a new total (a finished run is only loaded and keeps its config).
             write_text_atomic(run_path / RUN_FILES["config"], json.dumps(_jsonable(config), indent=1) + "\n")
         if remaining > 0 and resume:
-            buffer = run_path / RUN_FILES["last_buffer"]
-            if getattr(model, "replay_buffer", None) is not None and buffer.is_file():
-                with warnings.catch_warnings():
-                    # HER cuts the episode that was running at the save: the envs restart, as it assumes.
-                    warnings.filterwarnings("ignore", message="The last trajectory in the replay buffer")
-                    model.load_replay_buffer(buffer)
+            _load_replay_buffer(model, run_path / RUN_FILES["last_buffer"])
         if remaining > 0:
             description = f"{algorithm.upper()} train"
             callback = _curve_callback(

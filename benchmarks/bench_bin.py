@@ -3,18 +3,22 @@
 Clearing (``--only clearing``). Per method (the oracle with the true poses of the instances it sees, the descriptor
 agent on the pile's optimal descriptors, the toolcap's shipped networks, and the multi-part networks given with
 ``--multi-part``), the same seeded piles are picked one instance per step, target toolcap
-(:func:`don_gym.bin_benchmark.run_bin_benchmark`): piles cleared, picks per attempt, wrong-part picks and flipped
+(:func:`don_gym.evaluation.bin_benchmark.run_bin_benchmark`): piles cleared, picks per attempt, wrong-part picks
+and flipped
 placements, each with its 95% Wilson interval. The piles are the bin test piles (from
-:data:`don_gym.evaluation.BIN_TEST_SEED`, used for no decision); ``--split dev`` runs the development piles (from
-:data:`~don_gym.evaluation.BIN_DEVELOPMENT_SEED`) into section ``bin-dev``. Records RESULTS.md section ``bin`` with
+:data:`don_gym.evaluation.splits.BIN_TEST_SEED`, used for no decision); ``--split dev`` runs the development piles (from
+:data:`~don_gym.evaluation.splits.BIN_DEVELOPMENT_SEED`) into section ``bin-dev``. Records RESULTS.md section
+``bin`` with
 the issue's targets checked: the oracle clears >= 95% of piles; a supervised network of several parts reaches >= 85%
 picks per attempt with wrong-part picks <= 2% of picks. The chart goes to ``benchmarks/figures/bin_rates.png``.
 
-Tracking (``--only tracking``). Datasets of piles (:func:`don_gym.build.build_evaluation_datasets`), one
-per dataset seed of the split (:data:`don_gym.evaluation.SPLIT_SEEDS`, as benchmarks/bench_grasp.py's tracking: the
+Tracking (``--only tracking``). Datasets of piles (:func:`don_gym.evaluation.datasets.build_evaluation_datasets`), one
+per dataset seed of the split (:data:`don_gym.evaluation.splits.SPLIT_SEEDS`, as benchmarks/bench_grasp.py's
+tracking: the
 test seeds, or the development seeds with ``--split dev``), ``--scenes`` piles x ``--frames`` frames each, at the
 networks' training size with the variety of the multi-part networks' training data (:data:`VARIETY`); per part the
-tracking protocol with D435 depth (:func:`don_gym.evaluation.evaluate_tracking_per_part`) for the oracle, the part's
+tracking protocol with D435 depth (:func:`don_gym.evaluation.tracking.evaluate_tracking_per_part`) for the oracle,
+the part's
 shipped networks and the ``--multi-part`` networks. Records RESULTS.md section ``bin-tracking`` (``bin-tracking-dev``
 for ``--split dev``) with the 3D error modulo symmetry to the nearest instance of the part (any instance: a part's
 instances are alike), its far share, and the issue's target checked: a network of several parts' median within
@@ -41,7 +45,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import FIGURES, freeze_commit_description, record_section, split_line  # noqa: E402
 
-from don_gym.bin_benchmark import (  # noqa: E402
+from don_gym.evaluation.bin_benchmark import (
     ORACLE_DESCRIPTORS_METHOD,
     ORACLE_METHOD,
     BinBenchmarkConfig,
@@ -50,19 +54,11 @@ from don_gym.bin_benchmark import (  # noqa: E402
     run_bin_benchmark,
     write_bin_outputs,
 )
-from don_gym.build import build_evaluation_datasets  # noqa: E402
-from don_gym.evaluation import (  # noqa: E402
-    BIN_DEVELOPMENT_SEED,
-    BIN_TEST_SEED,
-    SPENT_SEEDS,
-    SPLIT_SEEDS,
-    TrackingConfig,
-    evaluate_tracking_per_part,
-    tail_table,
-    tracking_table,
-    write_tracking_outputs,
-)
-from don_gym.grasp_benchmark import default_methods, training_image_size  # noqa: E402
+from don_gym.evaluation.datasets import build_evaluation_datasets  # noqa: E402
+from don_gym.evaluation.grasp_benchmark import default_methods, training_image_size  # noqa: E402
+from don_gym.evaluation.report import tail_table, tracking_table, write_tracking_outputs
+from don_gym.evaluation.splits import BIN_DEVELOPMENT_SEED, BIN_TEST_SEED, SPENT_SEEDS, SPLIT_SEEDS
+from don_gym.evaluation.tracking import TrackingConfig, evaluate_tracking_per_part
 from don_gym.objects import load_object  # noqa: E402
 from don_gym.stats import BOOTSTRAP_RESAMPLES, format_estimate  # noqa: E402
 from don_gym.zoo import read_don_metadata, shipped_names_for  # noqa: E402
@@ -250,7 +246,7 @@ def tracking(args: argparse.Namespace, split: str) -> None:
             f"{len(seeds) * scenes} piles of {' + '.join(f'{n} {p}s' for p, n in PARTS)}, pooled, {width}x{height} "
             f"({size_note}), sensor `{SENSOR}`, backgrounds `{VARIETY['backgrounds']}` and lighting "
             f"`{VARIETY['lighting']}` (those of the multi-part networks' training data). Protocol "
-            "(`don_gym.evaluation.evaluate_tracking_per_part`): per part, every instance of it in a pile gets "
+            "(`don_gym.evaluation.tracking.evaluate_tracking_per_part`): per part, every instance of it in a pile gets "
             f"{points} reference pixels in the frame showing most of it, followed through the frames where the ideal "
             "depth shows them (occlusion by other instances counts); the best match is the argmin L2 over the image "
             "(for a network, but for its outer 16 pixels, where its output saw zero padding) and the predicted point "

@@ -19,11 +19,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import record_section  # noqa: E402
 
-from don_gym.build import DatasetConfig, build_dataset  # noqa: E402
+from don_gym.data.build import DatasetConfig, build_dataset  # noqa: E402
+from don_gym.data.render import DescriptorRenderer, make_target  # noqa: E402
 from don_gym.descriptors import embed  # noqa: E402
 from don_gym.geometry import invert_transform  # noqa: E402
 from don_gym.objects import load_object  # noqa: E402
-from don_gym.render import DescriptorRenderer, make_target  # noqa: E402
 from don_gym.sim.camera import render_camera  # noqa: E402
 from don_gym.sim.recorder import SceneRecorder  # noqa: E402
 
@@ -70,14 +70,14 @@ def correspondence_errors(config: DatasetConfig, pairs: int, seed: int) -> dict[
     each match's two pixels are lifted with *ideal* depth and true poses into the object frame,
     so the error is what the training signal gets wrong.
     """
-    from don_gym.correspondences import sample_correspondences
-    from don_gym.dataset import DEPTH_SOURCES
+    from don_gym.data.correspondences import sample_correspondences
+    from don_gym.data.dataset import DEPTH_SOURCES
     from don_gym.geometry import backproject_depth, transform_points
 
     errors: dict[str, list[np.ndarray]] = {name: [] for name in DEPTH_SOURCES}
     with tempfile.TemporaryDirectory(prefix="don_gym_bench_") as tmp:
         build_dataset(config, Path(tmp) / "data", progress=False)
-        from don_gym.dataset import DONDataset
+        from don_gym.data.dataset import DONDataset
 
         data = DONDataset(Path(tmp) / "data")
         rng = np.random.default_rng(seed)

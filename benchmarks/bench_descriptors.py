@@ -270,13 +270,13 @@ def robust_fine_level() -> Iterator[None]:
 #: inside another timed call counts towards the outer one (robust_laplacian's pass inside the fine
 #: level's `_robust`).
 STAGES: list[tuple[str, str, tuple[str, ...]]] = [
-    ("checks & hash", "don_gym.descriptors.embed", ("_as_mesh",)),
-    ("pieces & unit area", "don_gym.descriptors.embed", ("_components", "face_areas", "normalize_to_unit_area")),
+    ("checks & hash", "don_gym.descriptors.embed", ("mesh_arrays",)),
+    ("pieces & unit area", "don_gym.descriptors.embed", ("mesh_components", "face_areas", "normalize_to_unit_area")),
     ("fine Laplacian", "don_gym.descriptors.eigensolver", ("cotan_laplacian", "_robust")),
     (
         "coarse levels",
         "don_gym.descriptors.eigensolver",
-        ("_coarsen", "_drop_unreferenced", "_components", "mesh_laplacian"),
+        ("_coarsen", "_drop_unreferenced", "mesh_components", "mesh_laplacian"),
     ),
     ("eigensolve", "don_gym.descriptors.eigensolver", ("_direct_eigenpairs", "_lobpcg", "_Level._prepare")),
     ("descriptors & background", "don_gym.descriptors.embed", ("descriptor_functions", "background_descriptor")),

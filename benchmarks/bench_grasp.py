@@ -1,7 +1,7 @@
 """Tracking accuracy and grasp-and-place outcomes of the shipped DONs against the oracle, for the toolcap and the shaft.
 
 Tracking (RESULTS.md section "tracking") on the test split of each object (the scenes of three seeds no
-decision has used, :data:`don_gym.evaluation.TEST_SEEDS`; ``--split dev`` runs the development seeds into
+decision has used, :data:`don_gym.evaluation.splits.TEST_SEEDS`; ``--split dev`` runs the development seeds into
 section "tracking-dev", with each method's border margin beside the paper's whole-image search, and writes no
 README or docs block), every percentile with its 95% interval over
 scenes, the supervised networks checked against their targets (:data:`TRACKING_TARGETS_MM`), with the paper's
@@ -50,34 +50,25 @@ from _results import (  # noqa: E402
 )
 
 from don_gym import plotting  # noqa: E402
-from don_gym.build import build_evaluation_datasets  # noqa: E402
-from don_gym.evaluation import (  # noqa: E402
-    FRAMES_PER_SCENE,
-    LONG_TAIL_RATIO,
-    SCENES_PER_SEED,
-    SPENT_SEEDS,
-    SPLIT_SEEDS,
-    TRACKING_DEPTHS,
-    TrackingConfig,
-    evaluate_tracking_depths,
+from don_gym.evaluation.datasets import build_evaluation_datasets  # noqa: E402
+from don_gym.evaluation.grasp_benchmark import (
+    GraspBenchmarkConfig,
+    GraspBenchmarkResult,
+    default_methods,
+    run_grasp_benchmark,
+    training_image_size,
+)
+from don_gym.evaluation.grasp_report import check_targets, miss_table, outcome_table, sweep_table, write_grasp_outputs
+from don_gym.evaluation.report import (
     far_match_table,
     per_scene_table,
     tail_table,
     tracking_table,
     write_tracking_outputs,
 )
-from don_gym.grasp_benchmark import (  # noqa: E402
-    GraspBenchmarkConfig,
-    GraspBenchmarkResult,
-    check_targets,
-    default_methods,
-    miss_table,
-    outcome_table,
-    run_grasp_benchmark,
-    sweep_table,
-    training_image_size,
-    write_grasp_outputs,
-)
+from don_gym.evaluation.splits import FRAMES_PER_SCENE, SCENES_PER_SEED, SPENT_SEEDS, SPLIT_SEEDS
+from don_gym.evaluation.tracking import TRACKING_DEPTHS, TrackingConfig, evaluate_tracking_depths
+from don_gym.evaluation.tracking_metrics import LONG_TAIL_RATIO
 from don_gym.objects import load_object  # noqa: E402
 from don_gym.stats import format_estimate, format_rate  # noqa: E402
 from don_gym.zoo import read_don_metadata, shipped_names_for  # noqa: E402
@@ -173,9 +164,9 @@ def provenance(results_link: str, section: str) -> str:
 def tracking(args: argparse.Namespace, work: Path) -> tuple[str, dict[str, dict[str, Any]]]:
     """The "tracking" section (``tracking-dev`` for ``--split dev``) and ``{object: summary}``
     (:meth:`TrackingResult.summary` with :data:`FIGURE_DEPTH`): per object, one dataset per seed of the split
-    (:data:`don_gym.evaluation.SPLIT_SEEDS`: the test seeds no decision has used, or the development seeds),
+    (:data:`don_gym.evaluation.splits.SPLIT_SEEDS`: the test seeds no decision has used, or the development seeds),
     ``--scenes`` x ``--frames`` each at the image size the object's shipped networks were trained at, with
-    the D435 sensor, their scenes pooled; then :func:`don_gym.evaluation.evaluate_tracking_depths` for the
+    the D435 sensor, their scenes pooled; then :func:`don_gym.evaluation.tracking.evaluate_tracking_depths` for the
     oracle (optimal descriptors rendered from the true poses: the baseline every network is compared with)
     and every shipped network of the object, predicted points from ideal depth and from the recorded D435
     depth. Every percentile comes with its 95% interval from resampling scenes; per object and depth the
@@ -651,7 +642,8 @@ def _copy_grasp_figures(args: argparse.Namespace, paths: dict[str, Path], prefix
 def grasp(
     args: argparse.Namespace, work: Path, object_name: str
 ) -> tuple[str, GraspBenchmarkResult, GraspBenchmarkResult]:
-    """The object's grasp section: :func:`don_gym.grasp_benchmark.run_grasp_benchmark` (``don-gym benchmark grasp
+    """The object's grasp section: :func:`don_gym.evaluation.grasp_benchmark.run_grasp_benchmark` (``don-gym
+    benchmark grasp
     --object OBJECT``): oracle and the object's shipped networks on the 8 fixed poses, ``--repeats`` seeds,
     sensors ideal, d435@0.5 and d435 (the headline table is the D435's), ``--random-poses`` random poses, and
     the issue's targets checked (oracle 8/8 grasp & place; supervised networks 8/8 grasped and at least 7/8

@@ -1,9 +1,10 @@
 """6D pose from descriptors, scored as the BOP Challenge scores it, for the toolcap and the shaft (issue #34).
 
-On the held-out test split of each object (the scenes of :data:`don_gym.evaluation.TEST_SEEDS`, built as the
-tracking benchmark builds them: :data:`~don_gym.evaluation.SCENES_PER_SEED` scenes x
-:data:`~don_gym.evaluation.FRAMES_PER_SCENE` frames per seed at the shipped networks' training size, D435
-sensor), :func:`don_gym.pose_evaluation.evaluate_pose` for the oracle and every shipped network of the object,
+On the held-out test split of each object (the scenes of :data:`don_gym.evaluation.splits.TEST_SEEDS`, built as the
+tracking benchmark builds them: :data:`~don_gym.evaluation.splits.SCENES_PER_SEED` scenes x
+:data:`~don_gym.evaluation.splits.FRAMES_PER_SCENE` frames per seed at the shipped networks' training size, D435
+sensor), :func:`don_gym.evaluation.pose_evaluation.evaluate_pose` for the oracle and every shipped network of the
+object,
 with the recorded D435 depth (3D-3D RANSAC and ICP) and without depth (RGB-only PnP). Records RESULTS.md section
 ``pose`` (``pose-dev`` for ``--split dev``) with the issue's targets checked: oracle AR >= 0.95 and both
 supervised networks AR >= 0.7 with depth; RGB-only PnP and the self-supervised network as measured. Figures
@@ -15,7 +16,7 @@ and the BOP results files of every method to ``--work``.
     python benchmarks/bench_pose.py --split dev   # development seeds, section "pose-dev"
     python benchmarks/bench_pose.py --only grasp  # only the grasp comparison, section "pose-grasp"
 
-The grasp comparison (section ``pose-grasp``, :func:`don_gym.grasp_benchmark.run_grasp_benchmark`, as
+The grasp comparison (section ``pose-grasp``, :func:`don_gym.evaluation.grasp_benchmark.run_grasp_benchmark`, as
 ``don-gym benchmark grasp --methods M pose:M ...``): every method's descriptors used twice on the 8 fixed poses,
 by the two-descriptor ``AxisGraspAgent`` and by ``PoseGraspAgent`` (grasp from the estimated 6D pose), D435.
 """
@@ -42,19 +43,18 @@ from _results import (  # noqa: E402
     split_line,
 )
 
-from don_gym.build import build_evaluation_datasets  # noqa: E402
-from don_gym.evaluation import FRAMES_PER_SCENE, SCENES_PER_SEED, SPENT_SEEDS, SPLIT_SEEDS  # noqa: E402
-from don_gym.grasp_benchmark import (  # noqa: E402
+from don_gym.evaluation.datasets import build_evaluation_datasets  # noqa: E402
+from don_gym.evaluation.grasp_benchmark import (
     POSE_AGENT_PREFIX,
     GraspBenchmarkConfig,
     default_methods,
-    outcome_table,
     run_grasp_benchmark,
     training_image_size,
-    write_grasp_outputs,
 )
+from don_gym.evaluation.grasp_report import outcome_table, write_grasp_outputs
+from don_gym.evaluation.pose_evaluation import evaluate_pose, pose_table, write_pose_outputs  # noqa: E402
+from don_gym.evaluation.splits import FRAMES_PER_SCENE, SCENES_PER_SEED, SPENT_SEEDS, SPLIT_SEEDS  # noqa: E402
 from don_gym.objects import load_object  # noqa: E402
-from don_gym.pose_evaluation import evaluate_pose, pose_table, write_pose_outputs  # noqa: E402
 from don_gym.zoo import read_don_metadata, shipped_names_for  # noqa: E402
 
 OBJECTS = ("toolcap", "shaft")
@@ -195,9 +195,9 @@ def main() -> None:
     header = (
         split_line(args.split, seeds, SPENT_SEEDS) + ", "
         f"{args.scenes} scenes x {args.frames} frames each, pooled, at the networks' training size, sensor `d435`. "
-        "Protocol (`don_gym.pose_evaluation`): one pose estimate of the part per frame and method "
-        "(`don_gym.pose`: part pixels matched to the part's surface rings in descriptor space, ratio test; with "
-        "depth, RANSAC fit of the axis to the matched depth points and point-to-point ICP; without depth, "
+        "Protocol (`don_gym.evaluation.pose_evaluation`): one pose estimate of the part per frame and method "
+        "(`don_gym.perception.pose`: part pixels matched to the part's surface rings in descriptor space, ratio "
+        "test; with depth, RANSAC fit of the axis to the matched depth points and point-to-point ICP; without depth, "
         "OpenCV's RANSAC PnP), scored against the frame's true pose by BOP's MSSD (thresholds 0.05-0.5 of the "
         "diameter) and MSPD (5-50 px at 640 px width) with the part's continuous symmetry discretised as BOP "
         "does; AR = mean of AR_MSSD and AR_MSPD (BOP's VSD is not computed); ADD-S share below 10% of the "
@@ -213,7 +213,7 @@ def main() -> None:
         grasp_body = (
             "Each method's descriptors used twice: by the two-descriptor `AxisGraspAgent` (the paper's agent) and "
             "by `PoseGraspAgent` (`pose:` methods: a grasp along the axis of the 6D pose estimated with "
-            "`don_gym.pose` from the same descriptor image and the D435 depth).\n\n"
+            "`don_gym.perception.pose` from the same descriptor image and the D435 depth).\n\n"
             + "\n\n".join(with_kept_objects("pose-grasp", measured, keep=publish_grasp))
         )
         print(grasp_body)

@@ -40,13 +40,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _results import OtherProcessLoad, record_section  # noqa: E402
 
-from don_gym.augment import AugmentConfig  # noqa: E402
-from don_gym.build import DatasetConfig, build_dataset  # noqa: E402
-from don_gym.checkpoints import CheckpointMetadata, save_checkpoint  # noqa: E402
-from don_gym.losses import supervised_l2_loss  # noqa: E402
-from don_gym.model import ARCHS, DEFAULT_ARCH, DenseObjectNet, count_parameters  # noqa: E402
-from don_gym.torch_data import StepBatches, SupervisedFrames, step_loader  # noqa: E402
-from don_gym.train import TRAIN_STATE, TrainConfig, train  # noqa: E402
+from don_gym.data.build import DatasetConfig, build_dataset  # noqa: E402
+from don_gym.learning.augment import AugmentConfig  # noqa: E402
+from don_gym.learning.checkpoints import CheckpointMetadata, save_checkpoint  # noqa: E402
+from don_gym.learning.losses import supervised_l2_loss  # noqa: E402
+from don_gym.learning.model import ARCHS, DEFAULT_ARCH, DenseObjectNet, count_parameters  # noqa: E402
+from don_gym.learning.torch_data import StepBatches, SupervisedFrames, step_loader  # noqa: E402
+from don_gym.learning.train import TRAIN_STATE, TrainConfig, train  # noqa: E402
 
 BASELINE_ARCH = "resnet34"
 TARGET_MS = 30.0

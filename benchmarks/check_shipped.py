@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from don_gym.checkpoints import read_checkpoint_metadata
+from don_gym.learning.checkpoints import read_checkpoint_metadata
 from don_gym.zoo import SHIPPED_DIR, shipped_names
 
 MANIFEST_PATH = SHIPPED_DIR / "MANIFEST.json"
@@ -45,11 +45,11 @@ CONCERNS: dict[str, tuple[str, ...]] = {
     "descriptor fields": ("don_gym.descriptors", "don_gym.objects"),
     # What the networks were trained on: recorded scenes, simulated depth, rendered targets, the format.
     "training data": (
-        "don_gym.build",
-        "don_gym.dataset",
-        "don_gym.fusion",
+        "don_gym.data.build",
+        "don_gym.data.dataset",
+        "don_gym.data.fusion",
         "don_gym.geometry",
-        "don_gym.render",
+        "don_gym.data.render",
         "don_gym.sim.camera",
         "don_gym.sim.recorder",
         "don_gym.sim.sensor",
@@ -63,12 +63,12 @@ CONCERNS: dict[str, tuple[str, ...]] = {
         "don_gym.sim.task",
     ),
     # The networks themselves: architecture, preprocessing, loading.
-    "networks": ("don_gym.checkpoints", "don_gym.model"),
+    "networks": ("don_gym.learning.checkpoints", "don_gym.learning.model"),
     # How their descriptors become keypoints and a grasp.
     "use": (
         "don_gym.agents.axis_grasp",
-        "don_gym.descriptor_sources",
-        "don_gym.keypoints",
+        "don_gym.perception.descriptor_sources",
+        "don_gym.perception.keypoints",
         "don_gym.wrappers.descriptors",
         "don_gym.wrappers.keypoints",
     ),
@@ -204,8 +204,8 @@ def _compact(image: np.ndarray) -> np.ndarray:
 def _dataset_fingerprints() -> dict[str, np.ndarray]:
     """One scene of two frames of the toolcap, built and read back as training reads it: the first
     frame's images and both camera poses."""
-    from don_gym.build import DatasetConfig, build_dataset
-    from don_gym.dataset import FRAME_KINDS, DONDataset
+    from don_gym.data.build import DatasetConfig, build_dataset
+    from don_gym.data.dataset import FRAME_KINDS, DONDataset
 
     config = DatasetConfig(object="toolcap", scenes=1, frames_per_scene=2, image_size=DATASET_SIZE, sensor="d435")
     with tempfile.TemporaryDirectory(prefix="don_gym_fingerprint_") as tmp:
@@ -240,8 +240,8 @@ def _observation_fingerprints() -> dict[str, np.ndarray]:
 def network_fingerprint(name: str, rgb: np.ndarray) -> np.ndarray:
     """A shipped network's descriptors of ``rgb``, as the env wrappers and agents compute them, every
     :data:`NETWORK_OUTPUT_STRIDE`-th pixel."""
-    from don_gym.descriptor_sources import load_descriptor_source
     from don_gym.objects import load_object
+    from don_gym.perception.descriptor_sources import load_descriptor_source
 
     source = load_descriptor_source(name, load_object(name.split("/", 1)[0]))
     with warnings.catch_warnings():

@@ -34,16 +34,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import RESULTS_PATH, commit_description, read_section, record_section, section_origin  # noqa: E402
 from check_shipped import record_regenerated  # noqa: E402
 
-from don_gym.build import DatasetConfig, build_dataset  # noqa: E402
-from don_gym.checkpoints import read_checkpoint_metadata, restamp_checkpoint  # noqa: E402
 from don_gym.cli import parse_size, positive_int  # noqa: E402
-from don_gym.dataset import FIELD_FILE  # noqa: E402
+from don_gym.data.build import DatasetConfig, build_dataset  # noqa: E402
+from don_gym.data.dataset import FIELD_FILE  # noqa: E402
 from don_gym.descriptors import DescriptorField  # noqa: E402
 from don_gym.errors import DonGymError  # noqa: E402
-from don_gym.model import ARCHS, DEFAULT_ARCH  # noqa: E402
+from don_gym.learning.checkpoints import read_checkpoint_metadata, restamp_checkpoint  # noqa: E402
+from don_gym.learning.model import ARCHS, DEFAULT_ARCH  # noqa: E402
+from don_gym.learning.train import TrainConfig, train  # noqa: E402
 from don_gym.objects import load_object  # noqa: E402
 from don_gym.sim.backdrop import BACKDROP_SETS  # noqa: E402
-from don_gym.train import TrainConfig, train  # noqa: E402
 from don_gym.zoo import SHIPPED_DIR  # noqa: E402
 
 OBJECTS = ("toolcap", "shaft")
@@ -154,7 +154,7 @@ def main() -> None:
     parser.add_argument(
         "--threads", type=positive_int, default=1, help="torch threads per training (1: see TrainConfig)"
     )
-    # Batches built in worker processes do not change the curve (don_gym.train), only the time: the
+    # Batches built in worker processes do not change the curve (don_gym.learning.train), only the time: the
     # loading share of a step was a third at 256x192 crops without them.
     parser.add_argument("--workers", type=int, default=2, help="processes that build the batches (0: in the loop)")
     parser.add_argument("--objects", nargs="+", choices=OBJECTS, default=list(OBJECTS))

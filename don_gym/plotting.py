@@ -331,25 +331,26 @@ def plot_match_gallery(
     return _save(fig, path)
 
 
-# --- grasp outcomes (don_gym.grasp_benchmark) --------------------------------------------------------
+# --- grasp outcomes (don_gym.evaluation.grasp_benchmark) --------------------------------------------------------
 
 
 def plot_outcome_bars(
-    counts_by_method: Mapping[str, Mapping[str, int]], path: str | Path, *, title: str | None = None
+    counts_by_method: Mapping[str, Mapping[str, int]],
+    path: str | Path,
+    outcomes: Sequence[str],
+    *,
+    title: str | None = None,
 ) -> Path:
-    """One stacked bar per method with the number of episodes ending in each outcome
-    (bottom to top: grasp & place, grasp only, fail), like the paper's robot-experiment figure."""
+    """One stacked bar per method with the number of episodes ending in each of ``outcomes`` (worst first, as
+    :data:`don_gym.sim.task.OUTCOMES`; stacked best at the bottom), like the paper's robot-experiment figure."""
     from matplotlib.ticker import MaxNLocator
-
-    # Imported here: don_gym.sim.task pulls in PyBullet, which no other figure needs.
-    from don_gym.sim.task import OUTCOMES
 
     labels = list(counts_by_method)
     fig = _new_figure(max(4.0, 1.3 * len(labels) + 1.5), 3.8, dpi=110, layout="constrained")
     ax = fig.add_subplot()
     x = np.arange(len(labels))
     bottom = np.zeros(len(labels))
-    for outcome in reversed(OUTCOMES):
+    for outcome in reversed(outcomes):
         heights = np.array([counts_by_method[k].get(outcome, 0) for k in labels], dtype=np.float64)
         ax.bar(x, heights, 0.6, bottom=bottom, color=OUTCOME_COLORS[outcome], label=OUTCOME_LABELS[outcome])
         for xi, b, h in zip(x, bottom, heights, strict=True):
@@ -439,7 +440,7 @@ def plot_rate_bars(
     return _save(fig, path)
 
 
-# --- training (don_gym.train, don_gym.agents.rl) -----------------------------------------------------
+# --- training (don_gym.learning.train, don_gym.agents.rl) -----------------------------------------------------
 
 
 def plot_loss_curve(rows: Sequence[Mapping[str, Any]], path: str | Path, title: str) -> Path:
@@ -512,7 +513,7 @@ def plot_pose_recalls(
     MSPD (px at 640 px width).
 
     ``curves``: {method: {"mssd_thresholds", "mssd_recall", "mspd_thresholds_px", "mspd_recall", "ar"}} as
-    :func:`don_gym.pose_metrics.pose_recalls` gives them; the legend names each method with its AR.
+    :func:`don_gym.evaluation.pose_metrics.pose_recalls` gives them; the legend names each method with its AR.
     """
     if not curves:
         raise DonGymError("plot_pose_recalls: no method to draw")

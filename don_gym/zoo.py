@@ -10,15 +10,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from don_gym.checkpoints import (
+from don_gym.errors import CheckpointError
+from don_gym.learning.checkpoints import (
     CheckpointMetadata,
     check_metadata,
     load_checkpoint,
     part_mismatch,
     read_checkpoint_metadata,
 )
-from don_gym.errors import CheckpointError
-from don_gym.model import DenseObjectNet
+from don_gym.learning.model import DenseObjectNet
 from don_gym.objects import ObjectModel
 
 SHIPPED_DIR = Path(__file__).resolve().parent / "shipped"
@@ -31,7 +31,7 @@ def shipped_names() -> list[str]:
 
 def shipped_names_for(part: ObjectModel) -> list[str]:
     """Short names of the shipped networks trained on ``part``, matched by its geometry
-    (:func:`~don_gym.checkpoints.part_mismatch`), not by its name."""
+    (:func:`~don_gym.learning.checkpoints.part_mismatch`), not by its name."""
     return [
         name for name in shipped_names() if part_mismatch(read_checkpoint_metadata(shipped_path(name)), part) is None
     ]

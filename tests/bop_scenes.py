@@ -14,10 +14,10 @@ import numpy as np
 import trimesh
 from synthetic_scenes import look_at
 
-from don_gym import bop
+from don_gym.data import bop
+from don_gym.data.render import DescriptorRenderer
 from don_gym.geometry import CameraIntrinsics, invert_transform, make_transform
 from don_gym.objects import load_object
-from don_gym.render import DescriptorRenderer
 
 WIDTH, HEIGHT = 64, 48
 K = np.array([[70.0, 0.0, 31.5], [0.0, 70.0, 23.5], [0.0, 0.0, 1.0]])

@@ -10,14 +10,14 @@ import pytest
 
 import don_gym  # noqa: F401 - registers the envs
 from don_gym.agents import AxisGraspAgent
-from don_gym.build import DatasetConfig, build_dataset
-from don_gym.descriptor_sources import OracleDescriptors, axis_end_targets, descriptor_field_for
+from don_gym.data.build import DatasetConfig, build_dataset
 from don_gym.errors import DonGymError
 from don_gym.geometry import make_transform, transform_points
-from don_gym.model import DenseObjectNet
+from don_gym.learning.model import DenseObjectNet
+from don_gym.learning.train import TrainConfig, train
 from don_gym.objects import load_object
+from don_gym.perception.descriptor_sources import OracleDescriptors, axis_end_targets, descriptor_field_for
 from don_gym.sim.task import OUTCOMES
-from don_gym.train import TrainConfig, train
 from don_gym.zoo import read_don_metadata, shipped_names
 
 

@@ -32,18 +32,20 @@ import pytest
 import torch
 
 import don_gym  # noqa: F401 - registers the envs
-from don_gym.build import DatasetConfig, build_dataset
-from don_gym.checkpoints import save_checkpoint
 from don_gym.cli import error_line, main
-from don_gym.dataset import DONDataset
-from don_gym.descriptor_sources import load_descriptor_source
+from don_gym.data.build import DatasetConfig, build_dataset
+from don_gym.data.dataset import DONDataset
 from don_gym.descriptors import embed
 from don_gym.errors import DonGymError
-from don_gym.evaluation import TrackingConfig, evaluate_tracking, write_tracking_outputs
-from don_gym.grasp_benchmark import GraspBenchmarkConfig, run_grasp_benchmark, write_grasp_outputs
+from don_gym.evaluation.grasp_benchmark import GraspBenchmarkConfig, run_grasp_benchmark
+from don_gym.evaluation.grasp_report import write_grasp_outputs
+from don_gym.evaluation.report import write_tracking_outputs
+from don_gym.evaluation.tracking import TrackingConfig, evaluate_tracking
 from don_gym.io import check_output_dir, check_output_file
-from don_gym.model import DenseObjectNet
+from don_gym.learning.checkpoints import save_checkpoint
+from don_gym.learning.model import DenseObjectNet
 from don_gym.objects import load_object
+from don_gym.perception.descriptor_sources import load_descriptor_source
 from don_gym.zoo import load_don
 
 torch.set_num_threads(1)
@@ -70,8 +72,8 @@ GRASP = ("benchmark", "grasp", "--no-progress", "--workers", "1", "--image-size"
 BUILD = ("build-dataset", "--out", "{tmp}/new_data")
 TRAIN = ("train", "--method", "supervised", "--data", "{data}", "--crop", "none")
 SELF_SUPERVISED = ("train", "--method", "self-supervised", "--data", "{data}")
-EVAL_WORK = "don_gym.evaluation:evaluate_tracking"
-GRASP_WORK = "don_gym.grasp_benchmark:run_grasp_benchmark"
+EVAL_WORK = "don_gym.evaluation.tracking:evaluate_tracking"
+GRASP_WORK = "don_gym.evaluation.grasp_benchmark:run_grasp_benchmark"
 EMBED_WORK = "don_gym.descriptors:embed"
 
 CLI_CASES: dict[str, Cli] = {
@@ -160,7 +162,7 @@ CLI_CASES: dict[str, Cli] = {
     "export scene negative": cli("export", "{data}", "--scene", "-1", "--out", "{tmp}/pdc", says="--scene -1"),
     "export unknown format": cli("export", "{data}", "--format", "ros", "--out", "{tmp}/pdc", says="--format"),
     "export --out an existing file": cli(
-        "export", "{data}", "--out", "{file}", says="file.txt", before_work="don_gym.export:export_scene_pdc"
+        "export", "{data}", "--out", "{file}", says="file.txt", before_work="don_gym.data.export:export_scene_pdc"
     ),
     # build-dataset
     "build workers 0": cli(*BUILD, "--workers", "0", says="--workers"),
@@ -200,9 +202,11 @@ CLI_CASES: dict[str, Cli] = {
     "train missing pretrained weights": cli(
         *TRAIN, "--out", "{tmp}/run", "--arch", "resnet18", "--pretrained", "{tmp}/imagenet.pt", says="imagenet.pt"
     ),
-    "train --out an existing file": cli(*TRAIN, "--out", "{file}", says="file.txt", before_work="don_gym.train:train"),
+    "train --out an existing file": cli(
+        *TRAIN, "--out", "{file}", says="file.txt", before_work="don_gym.learning.train:train"
+    ),
     "train self-supervised on data built with --no-fusion": cli(
-        *SELF_SUPERVISED, "--out", "{tmp}/run", says="--no-fusion", before_work="don_gym.train:_train"
+        *SELF_SUPERVISED, "--out", "{tmp}/run", says="--no-fusion", before_work="don_gym.learning.train:_train"
     ),
     "train resume from a corrupt train_state.pt": cli(
         *TRAIN, "--out", "{corrupt_run}", "--steps", "2", "--resume", says="train_state.pt"
@@ -492,8 +496,8 @@ WRITERS = {
     "benchmark grasp": ((*GRASP, "--out", "{out}/bench"), GRASP_WORK),
     "embed --out": (("embed", "toolcap", "--out", "{out}/field.npz"), EMBED_WORK),
     "embed --plot": (("embed", "toolcap", "--plot", "{out}/picture.png"), EMBED_WORK),
-    "export": (("export", "{data}", "--out", "{out}/pdc"), "don_gym.export:export_scene_pdc"),
-    "train": ((*TRAIN, "--out", "{out}/run"), "don_gym.train:train"),
+    "export": (("export", "{data}", "--out", "{out}/pdc"), "don_gym.data.export:export_scene_pdc"),
+    "train": ((*TRAIN, "--out", "{out}/run"), "don_gym.learning.train:train"),
 }
 
 
@@ -574,7 +578,7 @@ def test_ctrl_c_is_one_line_with_status_130(workspace, monkeypatch, capsys) -> N
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr("don_gym.evaluation.evaluate_tracking", interrupted)
+    monkeypatch.setattr("don_gym.evaluation.tracking.evaluate_tracking", interrupted)
     code, _, err = run_cli([*workspace.fill(EVAL), "--out", str(workspace.tmp / "o")], capsys)
     assert code == 130 and err == "don-gym evaluate: interrupted\n"
     assert not (workspace.tmp / "o").exists()  # nothing written

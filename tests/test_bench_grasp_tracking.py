@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from don_gym.evaluation import MATCH_CATEGORIES, TrackingMatches
+from don_gym.evaluation.tracking_metrics import MATCH_CATEGORIES, TrackingMatches
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 import bench_grasp  # noqa: E402

@@ -12,7 +12,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from don_gym.checkpoints import read_checkpoint_metadata
+from don_gym.learning.checkpoints import read_checkpoint_metadata
 from don_gym.zoo import SHIPPED_DIR
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))

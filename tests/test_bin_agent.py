@@ -10,7 +10,9 @@ import pytest
 
 from don_gym.agents import BinAxisGraspAgent, BinOracleAgent
 from don_gym.agents.bin_agent import InstanceEstimate, pair_ring_candidates, rank_grasps
-from don_gym.bin_benchmark import (
+from don_gym.cli import main
+from don_gym.errors import DonGymError
+from don_gym.evaluation.bin_benchmark import (
     EPISODE_KEYS,
     BinBenchmarkConfig,
     merge_bin_shards,
@@ -18,11 +20,9 @@ from don_gym.bin_benchmark import (
     write_bin_outputs,
     write_bin_shard,
 )
-from don_gym.cli import main
-from don_gym.descriptor_sources import axis_end_targets
-from don_gym.errors import DonGymError
-from don_gym.keypoints import local_matches
 from don_gym.objects import load_object
+from don_gym.perception.descriptor_sources import axis_end_targets
+from don_gym.perception.keypoints import local_matches
 from don_gym.sim.bin_env import BinPickEnv
 
 SMALL_PILE = {"toolcap": 2, "shaft": 1}
@@ -185,10 +185,10 @@ def test_bad_input_is_one_line(tmp_path, capsys, args, message):
 
 
 def test_a_network_of_several_parts_benchmarks_for_its_target(tmp_path):
-    from don_gym.bin_benchmark import check_targets, describe_methods
-    from don_gym.bin_dataset import build_bin_dataset
-    from don_gym.build import DatasetConfig
-    from don_gym.train import TrainConfig, train
+    from don_gym.data.bin_dataset import build_bin_dataset
+    from don_gym.data.build import DatasetConfig
+    from don_gym.evaluation.bin_benchmark import check_targets, describe_methods
+    from don_gym.learning.train import TrainConfig, train
 
     data = tmp_path / "data"
     build_bin_dataset(DatasetConfig(scenes=1, frames_per_scene=2, image_size=(64, 48), seed=17), SMALL_PILE, data,

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from don_gym.bin_dataset import (
+from don_gym.cli import main
+from don_gym.data.bin_dataset import (
     PART_FIELDS_DIR,
     PART_SPACE_FILE,
     BinTargets,
@@ -17,17 +18,16 @@ from don_gym.bin_dataset import (
     instance_parts,
     load_part_space,
 )
-from don_gym.build import DatasetConfig
-from don_gym.checkpoints import read_checkpoint_metadata
-from don_gym.cli import main
-from don_gym.dataset import DONDataset
-from don_gym.descriptor_sources import load_descriptor_source
+from don_gym.data.build import DatasetConfig
+from don_gym.data.dataset import DONDataset
 from don_gym.errors import CheckpointError, DatasetError, DonGymError
-from don_gym.evaluation import TrackingConfig, evaluate_tracking_per_part
+from don_gym.evaluation.tracking import TrackingConfig, evaluate_tracking_per_part
 from don_gym.geometry import invert_transform
+from don_gym.learning.checkpoints import read_checkpoint_metadata
+from don_gym.learning.torch_data import CorrespondencePairs
+from don_gym.learning.train import TrainConfig, train
 from don_gym.objects import load_object
-from don_gym.torch_data import CorrespondencePairs
-from don_gym.train import TrainConfig, train
+from don_gym.perception.descriptor_sources import load_descriptor_source
 
 CONFIG = DatasetConfig(scenes=2, frames_per_scene=3, image_size=(64, 48), seed=17)
 PARTS = {"toolcap": 2, "shaft": 1}
@@ -160,7 +160,7 @@ def test_identity_layout_targets_keep_each_parts_whole_field(bin_data):
 
 def test_identity_layout_network_loads_for_either_part(bin_data, identity_net, multi_part_net, tmp_path):
     from don_gym.agents import BinAxisGraspAgent
-    from don_gym.checkpoints import checkpoint_part_space
+    from don_gym.learning.checkpoints import checkpoint_part_space
     from don_gym.sim.bin_env import BinPickEnv
 
     metadata = read_checkpoint_metadata(identity_net)

@@ -1,4 +1,4 @@
-"""BOP in and out: the file readers and writers (don_gym.bop), don-gym import-bop and export --format bop, on
+"""BOP in and out: the file readers and writers (don_gym.data.bop), don-gym import-bop and export --format bop, on
 tiny BOP datasets the tests write themselves (tests/bop_scenes.py)."""
 
 from __future__ import annotations
@@ -12,13 +12,13 @@ import bop_scenes
 import numpy as np
 import pytest
 
-from don_gym import bop
 from don_gym.cli import main
-from don_gym.dataset import DATASET_FILE, SCENE_FILE, DONDataset, instance_mask
+from don_gym.data import bop
+from don_gym.data.dataset import DATASET_FILE, SCENE_FILE, DONDataset, instance_mask
+from don_gym.data.render import DescriptorRenderer
 from don_gym.descriptors import DescriptorField
 from don_gym.errors import DatasetError, MeshError
 from don_gym.geometry import CameraIntrinsics, backproject_depth, invert_transform, transform_points
-from don_gym.render import DescriptorRenderer
 
 
 @pytest.fixture(scope="module")
@@ -163,7 +163,7 @@ def test_import_writes_version_2_with_true_poses_occlusion_and_targets(bop_root:
 
 
 def test_import_correspondences_follow_the_part(imported: Path) -> None:
-    from don_gym.torch_data import CorrespondencePairs
+    from don_gym.learning.torch_data import CorrespondencePairs
 
     data = DONDataset(imported)
     record = data.scenes[0]
@@ -182,8 +182,8 @@ def test_import_correspondences_follow_the_part(imported: Path) -> None:
 
 
 def test_import_of_two_instances_gray_jpeg_another_camera_and_models_dir(tmp_path: Path) -> None:
-    from don_gym.import_bop import import_bop
-    from don_gym.torch_data import CorrespondencePairs
+    from don_gym.data.import_bop import import_bop
+    from don_gym.learning.torch_data import CorrespondencePairs
 
     root = tmp_path / "bop"
     bop_scenes.write_bop_dataset(
@@ -338,7 +338,7 @@ def test_bad_input_is_one_line_naming_the_file_and_nothing_is_written(
 
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory) -> Path:
-    from don_gym.build import DatasetConfig, build_dataset
+    from don_gym.data.build import DatasetConfig, build_dataset
 
     out = tmp_path_factory.mktemp("sim") / "data"
     config = DatasetConfig(scenes=1, frames_per_scene=3, image_size=(64, 48), sensor="ideal", seed=3, fuse_depth=False)
@@ -408,7 +408,7 @@ def test_export_is_read_as_bop_reads_it_and_imports_back(simulated: Path, tmp_pa
 
 
 def test_intrinsics_check_uses_the_image_size() -> None:
-    from don_gym.import_bop import _Image, _intrinsics
+    from don_gym.data.import_bop import _Image, _intrinsics
 
     image = _Image(1, 0, Path("rgb/000000.png"), Path("depth/000000.png"), {"cam_K": bop_scenes.K}, [])
     assert _intrinsics(image, 64, 48) == CameraIntrinsics(70.0, 70.0, 31.5, 23.5, 64, 48)

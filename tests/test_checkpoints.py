@@ -12,15 +12,15 @@ from file_snapshots import snapshot
 from safetensors.torch import save_file
 
 from don_gym import __version__
-from don_gym.checkpoints import (
+from don_gym.errors import CheckpointError, DonGymError
+from don_gym.learning.checkpoints import (
     FORMAT_VERSION,
     CheckpointMetadata,
     load_checkpoint,
     read_checkpoint_metadata,
     save_checkpoint,
 )
-from don_gym.errors import CheckpointError, DonGymError
-from don_gym.model import DenseObjectNet
+from don_gym.learning.model import DenseObjectNet
 
 METADATA = CheckpointMetadata(
     method="supervised-mask",

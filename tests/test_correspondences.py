@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from synthetic_scenes import Sphere, look_at, render_scene, table_scene, world_points
 
-from don_gym.correspondences import Correspondences, camera_poses_differ, sample_correspondences
+from don_gym.data.correspondences import Correspondences, camera_poses_differ, sample_correspondences
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics, invert_transform, project_points, transform_points
 

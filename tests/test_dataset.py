@@ -13,15 +13,15 @@ import pytest
 import trimesh
 import yaml
 
-from don_gym.build import DatasetConfig, build_dataset, parse_shard
-from don_gym.correspondences import sample_correspondences
-from don_gym.dataset import DONDataset, decode_depth_mm, encode_depth_mm
+from don_gym.data.build import DatasetConfig, build_dataset, parse_shard
+from don_gym.data.correspondences import sample_correspondences
+from don_gym.data.dataset import DONDataset, decode_depth_mm, encode_depth_mm
+from don_gym.data.export import export_scene_pdc
+from don_gym.data.render import DescriptorRenderer
 from don_gym.descriptors import embed, interpolate_field
 from don_gym.errors import DatasetError
-from don_gym.export import export_scene_pdc
 from don_gym.geometry import backproject_depth, invert_transform, transform_points
 from don_gym.objects import load_object
-from don_gym.render import DescriptorRenderer
 from don_gym.sim.recorder import SceneRecorder
 
 SMALL = DatasetConfig(scenes=2, frames_per_scene=3, image_size=(96, 72), sensor="d435", seed=7)
@@ -214,7 +214,7 @@ def test_export_pdc_layout(small_dataset: Path, tmp_path: Path) -> None:
 def test_torch_datasets(small_dataset: Path) -> None:
     import torch
 
-    from don_gym.torch_data import CorrespondencePairs, SupervisedFrames, collate_pairs
+    from don_gym.learning.torch_data import CorrespondencePairs, SupervisedFrames, collate_pairs
 
     for variant in ("geometric", "edge", "mask"):
         item = SupervisedFrames(str(small_dataset), variant=variant)[1]

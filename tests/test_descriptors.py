@@ -15,7 +15,7 @@ import trimesh
 
 from don_gym import descriptors as D
 from don_gym.descriptors import DescriptorField, embed, interpolate_field
-from don_gym.descriptors.eigensolver import _eigenpairs
+from don_gym.descriptors.eigensolver import mesh_eigenpairs
 from don_gym.descriptors.embed import _fix_sign
 from don_gym.errors import DonGymError, MeshError
 from don_gym.objects import load_object
@@ -308,7 +308,7 @@ def test_multilevel_solver_on_a_poorly_shaped_mesh_refines_with_robust_laplacian
     normalized, _ = D.normalize_to_unit_area(vertices, faces)
     assert D.cotan_laplacian(normalized, faces) is None
     cache: dict = {}
-    _, _, mass, solver = _eigenpairs(normalized, faces, 5, "multilevel", cache)
+    _, _, mass, solver = mesh_eigenpairs(normalized, faces, 5, "multilevel", cache)
     assert solver == "multilevel" and "robust" in cache and mass is cache["robust"][1]
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     direct, multilevel = embed(mesh, 3, method="direct"), embed(mesh, 3, method="multilevel")

@@ -12,22 +12,19 @@ import torch
 from scipy.spatial.transform import Rotation
 from synthetic_scenes import Sphere, look_at, render_scene, table_scene
 
-from don_gym.build import DatasetConfig, build_dataset
-from don_gym.checkpoints import save_checkpoint
 from don_gym.cli import main
-from don_gym.descriptor_sources import DescriptorSource, NetworkDescriptors
+from don_gym.data.build import DatasetConfig, build_dataset
 from don_gym.errors import DonGymError
-from don_gym.evaluation import (
+from don_gym.evaluation.report import per_scene_table
+from don_gym.evaluation.splits import seed_split
+from don_gym.evaluation.tracking import TrackingConfig, evaluate_tracking
+from don_gym.evaluation.tracking_metrics import (
     FAR_MATCH_M,
     MATCH_CATEGORIES,
-    TrackingConfig,
     TrackingMatches,
     attribute_matches,
-    evaluate_tracking,
     long_tail_verdict,
     match_descriptors,
-    per_scene_table,
-    seed_split,
     symmetric_distance,
     tracking_errors,
     visible_projections,
@@ -35,8 +32,10 @@ from don_gym.evaluation import (
     worst_matches,
 )
 from don_gym.geometry import CameraIntrinsics, invert_transform, make_transform, project_points, transform_points
-from don_gym.model import DenseObjectNet
+from don_gym.learning.checkpoints import save_checkpoint
+from don_gym.learning.model import DenseObjectNet
 from don_gym.objects import load_object
+from don_gym.perception.descriptor_sources import DescriptorSource, NetworkDescriptors
 from don_gym.plotting import plot_match_gallery
 
 torch.set_num_threads(1)

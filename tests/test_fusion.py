@@ -6,13 +6,8 @@ import numpy as np
 import pytest
 from synthetic_scenes import Sphere, distance_to_surfaces, look_at, render_scene, table_scene
 
+from don_gym.data.fusion import TSDFVolume, fuse_scene, fused_object_masks, object_mask_from_depth
 from don_gym.errors import DonGymError
-from don_gym.fusion import (
-    TSDFVolume,
-    fuse_scene,
-    fused_object_masks,
-    object_mask_from_depth,
-)
 from don_gym.geometry import CameraIntrinsics, backproject_depth, transform_points
 
 INTRINSICS = CameraIntrinsics.d435(160, 120)

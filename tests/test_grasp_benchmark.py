@@ -12,22 +12,19 @@ import torch
 
 from don_gym.cli import build_parser, main
 from don_gym.errors import DonGymError
-from don_gym.grasp_benchmark import (
+from don_gym.evaluation.grasp_benchmark import (
     DEFAULT_IMAGE_SIZE,
     EpisodeRunner,
     GraspBenchmarkConfig,
     GraspBenchmarkResult,
     episode_seed,
     episode_tasks,
-    miss_table,
-    outcome_table,
     parse_sensor,
     random_pose_seed,
     run_grasp_benchmark,
-    sweep_table,
     training_image_size,
-    write_grasp_outputs,
 )
+from don_gym.evaluation.grasp_report import miss_table, outcome_table, sweep_table, write_grasp_outputs
 
 torch.set_num_threads(1)
 

@@ -14,8 +14,10 @@ import torch
 import trimesh
 from safetensors.torch import load_file, save_file
 
-import don_gym.descriptor_sources as descriptor_sources
-from don_gym.checkpoints import (
+import don_gym.perception.descriptor_sources as descriptor_sources
+from don_gym.descriptors import FIELD_MATCH_ATOL, DescriptorField
+from don_gym.errors import CheckpointError
+from don_gym.learning.checkpoints import (
     FIELD_TENSORS,
     PART_TENSORS,
     CheckpointMetadata,
@@ -27,11 +29,9 @@ from don_gym.checkpoints import (
     restamp_checkpoint,
     save_checkpoint,
 )
-from don_gym.descriptor_sources import descriptor_field_for, load_descriptor_source
-from don_gym.descriptors import FIELD_MATCH_ATOL, DescriptorField
-from don_gym.errors import CheckpointError
-from don_gym.model import DenseObjectNet
+from don_gym.learning.model import DenseObjectNet
 from don_gym.objects import SHAPE_MATCH_RTOL, ObjectModel, load_object, part_name
+from don_gym.perception.descriptor_sources import descriptor_field_for, load_descriptor_source
 from don_gym.zoo import checkpoint_path, read_don_metadata, shipped_names, shipped_names_for
 
 torch.set_num_threads(1)
@@ -223,7 +223,7 @@ def test_format_1_checkpoint_loads_warns_and_restamps_without_touching_its_weigh
     with pytest.warns(UserWarning, match=r"carries no descriptor field.*reference frame.*restamp"):
         assert not source.reference_from_field
     # Restamp with the dataset's field as candidate: no embed needed.
-    monkeypatch.setattr("don_gym.checkpoints.embed", lambda *a, **k: pytest.fail("embed called"))
+    monkeypatch.setattr("don_gym.learning.checkpoints.embed", lambda *a, **k: pytest.fail("embed called"))
     metadata, done = restamp_checkpoint(path, toolcap, [toolcap_field])
     assert "identity and its descriptor field" in done and metadata.format_version == 2
     assert metadata.weights_sha256 == old.weights_sha256 and metadata.descriptor_field_hash == old.descriptor_field_hash

@@ -10,15 +10,15 @@ import torch
 import torch.nn.functional as F
 
 from don_gym.errors import DonGymError
-from don_gym.losses import (
+from don_gym.learning.losses import (
     batch_contrastive_loss,
     contrastive_loss_from_correspondences,
     pixelwise_contrastive_loss,
     supervised_l2_loss,
     supervised_l2_loss_terms,
 )
-from don_gym.methods import METHODS, SUPERVISED_TARGET_VARIANT, is_supervised, validate_method
-from don_gym.model import DenseObjectNet
+from don_gym.learning.methods import METHODS, SUPERVISED_TARGET_VARIANT, is_supervised, validate_method
+from don_gym.learning.model import DenseObjectNet
 
 
 def test_methods_are_canonical() -> None:
@@ -161,7 +161,7 @@ def test_contrastive_no_hard_negatives_and_empty_sets() -> None:
 
 def test_contrastive_from_correspondences_object_and_batch() -> None:
     pair = _hand_built_pair()
-    # Duck-typed correspondences with numpy int64 (u, v) arrays, as don_gym.correspondences has.
+    # Duck-typed correspondences with numpy int64 (u, v) arrays, as don_gym.data.correspondences has.
     corr = SimpleNamespace(**{k: v.numpy().astype(np.int64) for k, v in pair.items() if "matches" in k})
     loss, _ = contrastive_loss_from_correspondences(pair["descriptors_a"], pair["descriptors_b"], corr)
     assert loss.item() == pytest.approx(0.8)

@@ -9,9 +9,15 @@ import numpy as np
 import pytest
 import torch
 
-from don_gym.augment import AugmentConfig, augment, photometric_jitter, random_backgrounds, randomize_background
 from don_gym.errors import CheckpointError, DonGymError
-from don_gym.model import ARCHS, DEFAULT_ARCH, DenseObjectNet
+from don_gym.learning.augment import (
+    AugmentConfig,
+    augment,
+    photometric_jitter,
+    random_backgrounds,
+    randomize_background,
+)
+from don_gym.learning.model import ARCHS, DEFAULT_ARCH, DenseObjectNet
 
 
 @pytest.mark.parametrize("arch", sorted(ARCHS))

@@ -1,5 +1,5 @@
 """Tests of several parts in one descriptor space (don_gym.descriptors.multi_part) and of rendering
-several instances in one view (don_gym.render.MultiPartDescriptorRenderer, make_instances_target)."""
+several instances in one view (don_gym.data.render.MultiPartDescriptorRenderer, make_instances_target)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,14 @@ from scipy.spatial import cKDTree
 from scipy.spatial.distance import pdist
 from scipy.spatial.transform import Rotation
 
-from don_gym.descriptor_sources import descriptor_field_for
+from don_gym.data.render import (
+    DescriptorRenderer,
+    MultiPartDescriptorRenderer,
+    make_instances_target,
+    make_target,
+    mask_background,
+    render_instances,
+)
 from don_gym.descriptors import background_descriptor
 from don_gym.descriptors.multi_part import (
     DEFAULT_PART_GAP,
@@ -23,14 +30,7 @@ from don_gym.descriptors.multi_part import (
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics, make_transform
 from don_gym.objects import load_object
-from don_gym.render import (
-    DescriptorRenderer,
-    MultiPartDescriptorRenderer,
-    make_instances_target,
-    make_target,
-    mask_background,
-    render_instances,
-)
+from don_gym.perception.descriptor_sources import descriptor_field_for
 
 #: Rounding allowed on the guarantees: box distances are computed in float64, descriptors stored as float32.
 BOX_ATOL = 1e-12

@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 import torch
 
-from don_gym.build import DatasetConfig, build_dataset
 from don_gym.cli import main
-from don_gym.descriptor_sources import NetworkDescriptors
+from don_gym.data.build import DatasetConfig, build_dataset
 from don_gym.errors import DonGymError
-from don_gym.evaluation import TrackingConfig, evaluate_tracking
-from don_gym.grasp_benchmark import GraspBenchmarkConfig, run_grasp_benchmark
-from don_gym.model import DenseObjectNet, torch_device
+from don_gym.evaluation.grasp_benchmark import GraspBenchmarkConfig, run_grasp_benchmark
+from don_gym.evaluation.tracking import TrackingConfig, evaluate_tracking
+from don_gym.learning.model import DenseObjectNet, torch_device
 from don_gym.objects import load_object
+from don_gym.perception.descriptor_sources import NetworkDescriptors
 
 
 @pytest.fixture(scope="module")

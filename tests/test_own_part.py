@@ -15,9 +15,9 @@ import trimesh
 
 from don_gym.cli import main
 from don_gym.cli.benchmark import default_methods
-from don_gym.descriptor_sources import load_descriptor_source
 from don_gym.errors import CheckpointError
 from don_gym.objects import load_object
+from don_gym.perception.descriptor_sources import load_descriptor_source
 from don_gym.wrappers import DescriptorObservation, KeypointObservation
 from don_gym.zoo import read_don_metadata
 

@@ -1,4 +1,5 @@
-"""Pose from descriptors (don_gym.pose) and the BOP metrics (don_gym.pose_metrics): known answers on tiny images."""
+"""Pose from descriptors (don_gym.perception.pose) and the BOP metrics (don_gym.evaluation.pose_metrics): known
+answers on tiny images."""
 
 from __future__ import annotations
 
@@ -6,18 +7,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from don_gym.descriptor_sources import OracleDescriptors
+from don_gym.data.render import DescriptorRenderer
 from don_gym.errors import DonGymError
-from don_gym.geometry import CameraIntrinsics, make_transform, rotation_angle_rad
-from don_gym.objects import load_object
-from don_gym.pose import (
-    PoseConfig,
-    estimate_pose,
-    pose_targets,
-    pose_targets_for,
-    reference_vertex_descriptors,
-)
-from don_gym.pose_metrics import (
+from don_gym.evaluation.pose_metrics import (
     MSPD_THRESHOLDS_PX,
     MSSD_THRESHOLDS,
     adds,
@@ -30,7 +22,16 @@ from don_gym.pose_metrics import (
     recall_curve,
     symmetry_transformations,
 )
-from don_gym.render import DescriptorRenderer
+from don_gym.geometry import CameraIntrinsics, make_transform, rotation_angle_rad
+from don_gym.objects import load_object
+from don_gym.perception.descriptor_sources import OracleDescriptors
+from don_gym.perception.pose import (
+    PoseConfig,
+    estimate_pose,
+    pose_targets,
+    pose_targets_for,
+    reference_vertex_descriptors,
+)
 
 CUBE = np.array([[x, y, z] for x in (-0.01, 0.01) for y in (-0.01, 0.01) for z in (-0.02, 0.02)])
 K = CameraIntrinsics.d435(160, 120)
@@ -194,7 +195,7 @@ class _MaskOracle(OracleDescriptors):
         return False
 
     def view(self, T: np.ndarray) -> np.ndarray:
-        from don_gym.render import make_target, mask_background
+        from don_gym.data.render import make_target, mask_background
 
         rendered = self.render(K, T)
         background = mask_background(self.field.vertex_descriptors)
@@ -257,7 +258,7 @@ class _NoiseDescriptors(OracleDescriptors):
 
 @pytest.fixture(scope="module")
 def pose_dataset(tmp_path_factory):
-    from don_gym.build import DatasetConfig, build_dataset
+    from don_gym.data.build import DatasetConfig, build_dataset
 
     out = tmp_path_factory.mktemp("pose") / "data"
     config = DatasetConfig(
@@ -268,7 +269,7 @@ def pose_dataset(tmp_path_factory):
 
 
 def test_evaluate_pose_scores_the_oracle_high_and_noise_low(pose_dataset, toolcap):
-    from don_gym.pose_evaluation import evaluate_pose
+    from don_gym.evaluation.pose_evaluation import evaluate_pose
 
     methods = {"oracle": "oracle", "learned": _RelabelledOracle(toolcap), "noise": _NoiseDescriptors(toolcap)}
     results = evaluate_pose(pose_dataset, methods, depths=("ideal", "none"), progress=False)
@@ -287,8 +288,8 @@ def test_evaluate_pose_scores_the_oracle_high_and_noise_low(pose_dataset, toolca
 
 
 def test_cli_pose_writes_bop_results_bop_reads(pose_dataset, tmp_path, capsys):
-    from don_gym.bop import read_pose_results
     from don_gym.cli import main
+    from don_gym.data.bop import read_pose_results
 
     out = tmp_path / "out"
     argv = ["evaluate", "--data", str(pose_dataset), "--models", "oracle", "--pose", "--pose-depth", "ideal"]
@@ -301,7 +302,7 @@ def test_cli_pose_writes_bop_results_bop_reads(pose_dataset, tmp_path, capsys):
     # --pose adds the pose figures to the tracking evaluation, which runs as without it.
     tracked = __import__("json").loads((out / "tracking.json").read_text())
     assert "oracle" in tracked["methods"] and "3D error p50 (mm)" in printed
-    from don_gym.pose_evaluation import method_file_name
+    from don_gym.evaluation.pose_evaluation import method_file_name
 
     assert method_file_name("toolcap/supervised-edge") == "toolcap-supervised-edge"
     rows = read_pose_results(out / "pose_oracle.csv")
@@ -318,7 +319,7 @@ def test_cli_pose_writes_bop_results_bop_reads(pose_dataset, tmp_path, capsys):
 
 
 def test_pose_grasp_agent_beside_the_axis_agent_in_the_grasp_benchmark():
-    from don_gym.grasp_benchmark import GraspBenchmarkConfig, agent_model, run_grasp_benchmark
+    from don_gym.evaluation.grasp_benchmark import GraspBenchmarkConfig, agent_model, run_grasp_benchmark
 
     assert agent_model("pose:toolcap/supervised-edge") == ("pose", "toolcap/supervised-edge")
     assert agent_model("oracle") == ("axis", "oracle")
@@ -337,7 +338,7 @@ def test_pose_grasp_agent_beside_the_axis_agent_in_the_grasp_benchmark():
 
 
 def test_end_swap_check_turns_a_swapped_pose_back(toolcap, oracle):
-    from don_gym.pose import _end_swap
+    from don_gym.perception.pose import _end_swap
 
     targets = pose_targets_for(oracle)
     swap = _end_swap(targets)

@@ -23,12 +23,12 @@ import pytest
 import trimesh
 from file_snapshots import snapshot
 
-from don_gym.build import DatasetConfig, build_dataset
 from don_gym.cli import main
-from don_gym.dataset import DatasetLock, DONDataset
+from don_gym.data.build import DatasetConfig, build_dataset
+from don_gym.data.dataset import DatasetLock, DONDataset
+from don_gym.data.export import export_scene_pdc
 from don_gym.descriptors import DescriptorField
 from don_gym.errors import DatasetError
-from don_gym.export import export_scene_pdc
 
 TINY = DatasetConfig(scenes=2, frames_per_scene=2, image_size=(64, 48), fuse_depth=False, seed=5)
 TINY_ARGS = ["--scenes", "2", "--frames", "2", "--size", "64x48", "--no-fusion", "--seed", "5"]
@@ -284,7 +284,7 @@ def test_killed_build_resumes_to_a_complete_dataset(reference: Path, tmp_path: P
 
 def test_overwrite_is_refused_while_another_process_writes(dataset: Path) -> None:
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time; from don_gym.dataset import DatasetLock; "
+        [sys.executable, "-c", "import sys, time; from don_gym.data.dataset import DatasetLock; "
          "DatasetLock(sys.argv[1]).hold_session(); print('held', flush=True); time.sleep(120)", str(dataset)],
         stdout=subprocess.PIPE, text=True,
     )  # fmt: skip
@@ -338,7 +338,7 @@ def test_publishing_is_first_writer_wins_without_locks(tmp_path: Path) -> None:
     """What keeps writers on several machines correct without shared locks: an exclusive create for
     dataset-level files, one rename per scene (a second complete copy is dropped, a legacy
     incomplete scene directory is replaced)."""
-    from don_gym.dataset import new_scene_tmp_dir, publish_scene, scene_dir
+    from don_gym.data.dataset import new_scene_tmp_dir, publish_scene, scene_dir
     from don_gym.io import write_text_atomic
 
     write_text_atomic(tmp_path / "dataset.json", "first", exclusive=True)

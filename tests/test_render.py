@@ -1,4 +1,4 @@
-"""Tests of don_gym.render: ray-cast descriptor targets, masks and view-dependent descriptors."""
+"""Tests of don_gym.data.render: ray-cast descriptor targets, masks and view-dependent descriptors."""
 
 from __future__ import annotations
 
@@ -12,18 +12,7 @@ from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from don_gym.descriptor_sources import descriptor_field_for
-from don_gym.errors import DonGymError
-from don_gym.geometry import (
-    CameraIntrinsics,
-    backproject_depth,
-    invert_transform,
-    make_transform,
-    pose_from_transform,
-    transform_points,
-)
-from don_gym.objects import load_object
-from don_gym.render import (
+from don_gym.data.render import (
     TARGET_VARIANTS,
     DescriptorRenderer,
     RenderedTarget,
@@ -35,6 +24,17 @@ from don_gym.render import (
     mask_channel,
     render_descriptor_image,
 )
+from don_gym.errors import DonGymError
+from don_gym.geometry import (
+    CameraIntrinsics,
+    backproject_depth,
+    invert_transform,
+    make_transform,
+    pose_from_transform,
+    transform_points,
+)
+from don_gym.objects import load_object
+from don_gym.perception.descriptor_sources import descriptor_field_for
 
 BACKGROUND = np.array([0.0, 0.0, 1.0], dtype=np.float32)
 

@@ -15,12 +15,12 @@ from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
 import don_gym  # noqa: F401 - registers the envs
 from don_gym.agents import rl
-from don_gym.checkpoints import CheckpointMetadata, save_checkpoint
-from don_gym.descriptor_sources import axis_end_targets, load_descriptor_source
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics, make_transform
-from don_gym.model import DenseObjectNet
+from don_gym.learning.checkpoints import CheckpointMetadata, save_checkpoint
+from don_gym.learning.model import DenseObjectNet
 from don_gym.objects import load_object
+from don_gym.perception.descriptor_sources import axis_end_targets, load_descriptor_source
 from don_gym.sim.task import PLACE_TOLERANCE_M, seated_pose
 from don_gym.wrappers import (
     DescriptorImage,

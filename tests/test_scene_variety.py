@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from don_gym.build import DatasetConfig, build_dataset
-from don_gym.dataset import DATASET_FILE, DONDataset
+from don_gym.data.build import DatasetConfig, build_dataset
+from don_gym.data.dataset import DATASET_FILE, DONDataset
 from don_gym.errors import DatasetError, DonGymError
 from don_gym.objects import load_object
 from don_gym.sim.backdrop import BACKDROP_SETS, backdrop_texture, check_backdrop_set

@@ -78,7 +78,7 @@ def test_check_records_unaffected_networks_and_flags_moved_fingerprints(tmp_path
     monkeypatch.setattr(check_shipped, "FINGERPRINTS_PATH", tmp_path / "fingerprints.npz")
     names = shipped_names()
     assert names, "no shipped networks"
-    sources = {"use": {"don_gym.keypoints": "a"}}
+    sources = {"use": {"don_gym.perception.keypoints": "a"}}
     fingerprints = {"field/x/descriptors": np.zeros(4), check_shipped.INPUT_KEY: np.zeros((2, 2, 3), np.uint8)}
     fingerprints |= {f"network/{n}": np.zeros(3) for n in names}
     monkeypatch.setattr(check_shipped, "source_hashes", lambda: sources)
@@ -88,9 +88,9 @@ def test_check_records_unaffected_networks_and_flags_moved_fingerprints(tmp_path
     assert report.ok and report.rebaselined and report.recorded_new == names
     assert not check_shipped.stale_networks(check_shipped.read_manifest(), sources)
 
-    sources = {"use": {"don_gym.keypoints": "b"}}  # a source edit ...
+    sources = {"use": {"don_gym.perception.keypoints": "b"}}  # a source edit ...
     stale = check_shipped.stale_networks(check_shipped.read_manifest(), sources)
-    assert stale == {n: ["use: don_gym.keypoints"] for n in names}
+    assert stale == {n: ["use: don_gym.perception.keypoints"] for n in names}
     fingerprints["field/x/descriptors"] = np.full(4, 0.01)  # ... that moves a fingerprint within tolerance
     report = check_shipped.check_shipped(write=False)
     assert report.ok and report.shown_unaffected == names and not report.written
@@ -99,7 +99,7 @@ def test_check_records_unaffected_networks_and_flags_moved_fingerprints(tmp_path
     assert report.ok and not check_shipped.stale_networks(check_shipped.read_manifest(), sources)
     assert check_shipped.read_fingerprints()["field/x/descriptors"].max() == 0.0  # references kept
 
-    sources = {"use": {"don_gym.keypoints": "c"}}  # an edit that moves it too far: stale until regenerated
+    sources = {"use": {"don_gym.perception.keypoints": "c"}}  # an edit that moves it too far: stale until regenerated
     fingerprints["field/x/descriptors"] = np.full(4, 0.5)
     report = check_shipped.check_shipped()
     assert not report.ok and report.stale == names and "field/x/descriptors" in report.problems[0]

@@ -19,16 +19,16 @@ import pytest
 import torch
 from file_snapshots import snapshot
 
-import don_gym.train as train_module
-from don_gym.augment import AugmentConfig
-from don_gym.build import DatasetConfig, build_dataset
-from don_gym.checkpoints import load_checkpoint
+import don_gym.learning.train as train_module
 from don_gym.cli import main as cli_main
+from don_gym.data.build import DatasetConfig, build_dataset
 from don_gym.errors import CheckpointError, DonGymError
-from don_gym.methods import SUPERVISED_TARGET_VARIANT
-from don_gym.model import DenseObjectNet
-from don_gym.torch_data import CorrespondencePairs, StepBatches, SupervisedFrames, step_loader
-from don_gym.train import TRAIN_STATE, TrainConfig, train
+from don_gym.learning.augment import AugmentConfig
+from don_gym.learning.checkpoints import load_checkpoint
+from don_gym.learning.methods import SUPERVISED_TARGET_VARIANT
+from don_gym.learning.model import DenseObjectNet
+from don_gym.learning.torch_data import CorrespondencePairs, StepBatches, SupervisedFrames, step_loader
+from don_gym.learning.train import TRAIN_STATE, TrainConfig, train
 
 
 @pytest.fixture(scope="module")

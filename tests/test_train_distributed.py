@@ -2,7 +2,7 @@
 the last checkpoint intact, and torchrun resumes the run.
 
 BatchNorm: under DistributedDataParallel every BatchNorm layer computes its statistics over the
-whole batch of all processes (``don_gym.distributed.SyncedBatchNorm2d``), so two processes with
+whole batch of all processes (``don_gym.learning.distributed.SyncedBatchNorm2d``), so two processes with
 4 images each compute what one process computes with 8, up to float rounding; the tests compare
 losses, gradients and BatchNorm running statistics with tolerances for that rounding. (With
 smaller crops a nearly constant BatchNorm channel amplifies rounding to 1% of some gradients,
@@ -24,13 +24,13 @@ import numpy as np
 import pytest
 import torch
 
-import don_gym.train as train_module
-from don_gym.augment import AugmentConfig
-from don_gym.build import DatasetConfig, build_dataset
-from don_gym.checkpoints import load_checkpoint
+import don_gym.learning.train as train_module
+from don_gym.data.build import DatasetConfig, build_dataset
 from don_gym.errors import DonGymError
-from don_gym.torch_data import CorrespondencePairs, StepBatches
-from don_gym.train import TRAIN_STATE, TrainConfig, train
+from don_gym.learning.augment import AugmentConfig
+from don_gym.learning.checkpoints import load_checkpoint
+from don_gym.learning.torch_data import CorrespondencePairs, StepBatches
+from don_gym.learning.train import TRAIN_STATE, TrainConfig, train
 
 
 @pytest.fixture(scope="module")

@@ -13,17 +13,19 @@ from gymnasium.utils.env_checker import check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 import don_gym  # noqa: F401 - registers the envs
-from don_gym.checkpoints import CheckpointMetadata, save_checkpoint
-from don_gym.descriptor_sources import (
+from don_gym.errors import CheckpointError, DonGymError
+from don_gym.geometry import CameraIntrinsics, make_transform, pixel_rays, transform_points
+from don_gym.learning.checkpoints import CheckpointMetadata, save_checkpoint
+from don_gym.learning.model import DenseObjectNet
+from don_gym.objects import load_object
+from don_gym.perception.descriptor_sources import (
     OracleDescriptors,
     ReferenceFrame,
     axis_end_targets,
     load_descriptor_source,
     reference_descriptors_for,
 )
-from don_gym.errors import CheckpointError, DonGymError
-from don_gym.geometry import CameraIntrinsics, make_transform, pixel_rays, transform_points
-from don_gym.keypoints import (
+from don_gym.perception.keypoints import (
     best_match,
     descriptor_distances,
     locate_keypoints,
@@ -35,8 +37,6 @@ from don_gym.keypoints import (
     sample_descriptors,
     soft_match,
 )
-from don_gym.model import DenseObjectNet
-from don_gym.objects import load_object
 from don_gym.wrappers import DESCRIPTOR_BOUND, DescriptorObservation, KeypointObservation
 
 # ---------------------------------------------------------------------------------------- keypoints core
@@ -180,7 +180,7 @@ def _quiet_check(env: gym.Env) -> None:
 
 
 def test_wrappers_package_re_exports_the_descriptor_sources() -> None:
-    import don_gym.descriptor_sources as core
+    import don_gym.perception.descriptor_sources as core
     import don_gym.wrappers as wrappers
 
     for name in ("DescriptorSource", "ReferenceFrame", "load_descriptor_source", "axis_end_targets"):

@@ -12,7 +12,7 @@
 - :func:`make_keypoint_env` (an env with a keypoint source) and :func:`make_goal_env` (the goal-conditioned
   task for HER, which the registered ``DONToolcapLift-v0`` makes).
 
-The descriptor sources and reference descriptors live in :mod:`don_gym.descriptor_sources`; their
+The descriptor sources and reference descriptors live in :mod:`don_gym.perception.descriptor_sources`; their
 names are re-exported here. Example::
 
     env = KeypointObservation(gym.make("DONToolcapPick-v0", image_size=(320, 240)), model="oracle")
@@ -20,7 +20,7 @@ names are re-exported here. Example::
     obs["keypoint_points"]  # (2, 3): minus-end and plus-end ring of the toolcap, world metres
 """
 
-from don_gym.descriptor_sources import (
+from don_gym.perception.descriptor_sources import (
     AxisEndTargets,
     DescriptorSource,
     NetworkDescriptors,

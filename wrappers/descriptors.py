@@ -1,6 +1,6 @@
 """The DescriptorObservation wrapper: adds a descriptor source's ``descriptors`` to every observation.
 
-The sources themselves (the oracle, trained DONs) live in :mod:`don_gym.descriptor_sources`.
+The sources themselves (the oracle, trained DONs) live in :mod:`don_gym.perception.descriptor_sources`.
 """
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from don_gym.descriptor_sources import DescriptorSource, env_object_model, load_descriptor_source
 from don_gym.errors import DonGymError
-from don_gym.model import DenseObjectNet
+from don_gym.learning.model import DenseObjectNet
+from don_gym.perception.descriptor_sources import DescriptorSource, env_object_model, load_descriptor_source
 
 #: Descriptors in observations are clipped to +-this (the observation space's documented bound).
 #: Optimal descriptors lie in [0, 1]; trained networks stay within a few units of that.
@@ -27,10 +27,10 @@ class DescriptorObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     Args:
         env: a don_gym env with images (``rgb``, ``depth``).
         model: ``"oracle"``, a shipped network name, a checkpoint path, a DenseObjectNet or a
-            :class:`~don_gym.descriptor_sources.DescriptorSource` (see
-            :func:`~don_gym.descriptor_sources.load_descriptor_source`).
+            :class:`~don_gym.perception.descriptor_sources.DescriptorSource` (see
+            :func:`~don_gym.perception.descriptor_sources.load_descriptor_source`).
         descriptor_dim: required descriptor size (None: the model's; 3 for the oracle).
-        occlusion_check: see :class:`~don_gym.descriptor_sources.OracleDescriptors`.
+        occlusion_check: see :class:`~don_gym.perception.descriptor_sources.OracleDescriptors`.
 
     The observation space gains ``descriptors``: a Box of shape (H, W, D) bounded by
     ``+-DESCRIPTOR_BOUND`` (values are clipped to it); all other keys are kept. ``reset`` and

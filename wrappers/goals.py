@@ -19,8 +19,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from don_gym.descriptor_sources import DEFAULT_AXIS_FRACTIONS, axis_end_targets, env_object_model
 from don_gym.errors import DonGymError
+from don_gym.perception.descriptor_sources import DEFAULT_AXIS_FRACTIONS, axis_end_targets, env_object_model
 from don_gym.sim.env import HAND_STARTS
 from don_gym.sim.task import seated_pose, within_placement_tolerance
 from don_gym.wrappers.keypoints import POINT_BOUND_M, KeypointObservation

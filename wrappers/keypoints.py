@@ -1,7 +1,7 @@
 """The KeypointObservation wrapper: K keypoints tracked in each observation's descriptor image.
 
-Keypoint matching is :func:`don_gym.keypoints.locate_keypoints`; the default keypoints are the
-axis-end rings of :func:`don_gym.descriptor_sources.axis_end_targets`.
+Keypoint matching is :func:`don_gym.perception.keypoints.locate_keypoints`; the default keypoints are the
+axis-end rings of :func:`don_gym.perception.descriptor_sources.axis_end_targets`.
 """
 
 from __future__ import annotations
@@ -13,7 +13,10 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from don_gym.descriptor_sources import (
+from don_gym.errors import DonGymError
+from don_gym.geometry import CameraIntrinsics
+from don_gym.learning.model import DenseObjectNet
+from don_gym.perception.descriptor_sources import (
     AxisEndTargets,
     DescriptorSource,
     ReferenceFrame,
@@ -21,9 +24,7 @@ from don_gym.descriptor_sources import (
     default_reference_descriptors,
     descriptor_field_for,
 )
-from don_gym.errors import DonGymError
-from don_gym.geometry import CameraIntrinsics
-from don_gym.keypoints import (
+from don_gym.perception.keypoints import (
     DEFAULT_CONFIDENCE_SIGMA,
     DEFAULT_MAX_RADIUS_PX,
     DEFAULT_MIN_RADIUS_PX,
@@ -31,7 +32,6 @@ from don_gym.keypoints import (
     locate_keypoints,
     match_region,
 )
-from don_gym.model import DenseObjectNet
 from don_gym.wrappers.descriptors import DescriptorObservation
 
 #: Soft-match disc radius (m) for reference descriptors given by the user.
@@ -47,7 +47,7 @@ class KeypointObservation(DescriptorObservation):
 
     Added keys: ``keypoint_pixels`` (K, 2) float32 soft-match pixel (u, v); ``keypoint_points``
     (K, 3) float32 world point in metres from the depth image (robust to holes, see
-    :func:`don_gym.keypoints.robust_depth`; the camera centre if no depth is found within
+    :func:`don_gym.perception.keypoints.robust_depth`; the camera centre if no depth is found within
     ``max_radius_px``); ``keypoint_confidence`` (K,) float32 in [0, 1], ``exp(-(d / sigma)^2)`` of the
     best-match descriptor distance ``d`` (0 without depth).
 
@@ -55,9 +55,9 @@ class KeypointObservation(DescriptorObservation):
         env: a don_gym env with images.
         model: as for :class:`DescriptorObservation`.
         reference_descriptors: (K, D) descriptors to track, D the model's. None: the two axis-end
-            keypoints of :func:`~don_gym.descriptor_sources.axis_end_targets` (the
+            keypoints of :func:`~don_gym.perception.descriptor_sources.axis_end_targets` (the
             :class:`~don_gym.agents.AxisGraspAgent`'s), their descriptors from the field or from
-            ``reference_frame`` (see :func:`~don_gym.descriptor_sources.reference_descriptors_for`).
+            ``reference_frame`` (see :func:`~don_gym.perception.descriptor_sources.reference_descriptors_for`).
         keep_images: False drops ``rgb``, ``depth`` and ``descriptors`` for a compact observation.
         reference_frame: frame to read the default reference descriptors from; given, it is used for
             every model (None: the field where the model reproduces it, else the env reset at a fixed
@@ -67,9 +67,10 @@ class KeypointObservation(DescriptorObservation):
         temperature, confidence_sigma: descriptor-distance scales of the soft match and the confidence, in the
             part's own field's units (multiplied by the source's ``descriptor_scale`` for a network of several parts).
         descriptor_dim, occlusion_check: as for :class:`DescriptorObservation`.
-        min_radius_px, max_radius_px: depth windows (:func:`don_gym.keypoints.robust_depth`).
+        min_radius_px, max_radius_px: depth windows (:func:`don_gym.perception.keypoints.robust_depth`).
         border_margin_px: pixels along each edge of the frame where matches are not searched (None: the
-            model's own, :attr:`~don_gym.descriptor_sources.DescriptorSource.border_margin_px`; 0: everywhere).
+            model's own, :attr:`~don_gym.perception.descriptor_sources.DescriptorSource.border_margin_px`; 0:
+            everywhere).
     """
 
     def __init__(

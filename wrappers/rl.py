@@ -13,8 +13,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from don_gym.descriptor_sources import axis_end_targets, env_object_model
 from don_gym.errors import DonGymError
+from don_gym.perception.descriptor_sources import axis_end_targets, env_object_model
 from don_gym.sim.task import TABLE_TOP_Z_M, WORKSPACE_M
 
 #: ``frame`` values of :class:`KeypointGraspAction`.

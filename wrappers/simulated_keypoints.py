@@ -20,18 +20,18 @@ import numpy as np
 from gymnasium import spaces
 from tqdm.auto import tqdm
 
-from don_gym.descriptor_sources import (
+from don_gym.errors import DonGymError
+from don_gym.geometry import CameraIntrinsics, invert_transform, transform_points
+from don_gym.io import atomic_path
+from don_gym.learning.model import DenseObjectNet
+from don_gym.objects import ObjectModel
+from don_gym.perception.descriptor_sources import (
     DEFAULT_AXIS_FRACTIONS,
     AxisEndTargets,
     DescriptorSource,
     axis_end_targets,
     env_object_model,
 )
-from don_gym.errors import DonGymError
-from don_gym.geometry import CameraIntrinsics, invert_transform, transform_points
-from don_gym.io import atomic_path
-from don_gym.model import DenseObjectNet
-from don_gym.objects import ObjectModel
 from don_gym.wrappers.keypoints import IMAGE_KEYS, POINT_BOUND_M, KeypointObservation
 from don_gym.zoo import SHIPPED_DIR
 
@@ -107,7 +107,8 @@ class KeypointNoiseModel:
         flip_rate: fraction of frames with both keypoints found whose keypoints were swapped (the
             "upside down" confusion of the part's ends).
         object_name, object_mesh_hash: the part the errors were measured on.
-        fractions: axial fractions of the two keypoints (:func:`~don_gym.descriptor_sources.axis_end_targets`).
+        fractions: axial fractions of the two keypoints
+        (:func:`~don_gym.perception.descriptor_sources.axis_end_targets`).
         source: what was measured (a network name), for reports.
         frames: frames measured.
         source_weights_sha256: the measured network's ``weights_sha256`` (its checkpoint metadata), so that
@@ -222,7 +223,7 @@ class KeypointNoiseModel:
         seed: int = 0,
     ) -> KeypointNoiseModel:
         """A model from a tracking evaluation's per-match 3D errors
-        (:class:`don_gym.evaluation.TrackingMatches` ``error_3d_m`` and ``depth_valid``): error
+        (:class:`don_gym.evaluation.tracking_metrics.TrackingMatches` ``error_3d_m`` and ``depth_valid``): error
         magnitudes of random surface points in random directions (fixed here by ``seed``), matches
         without depth as misses, confidence 1. Coarser than :func:`measure_keypoint_noise`, which
         measures the two keypoints themselves (their soft match, their confidence and their flips);
@@ -295,7 +296,7 @@ def load_noise_model(noise: str | Path | KeypointNoiseModel) -> KeypointNoiseMod
 class SimulatedKeypoints(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """A model of the DON: the axis-end keypoints from the true pose, no rendering, no network.
 
-    Each step, for each of the two keypoints of :func:`~don_gym.descriptor_sources.axis_end_targets`:
+    Each step, for each of the two keypoints of :func:`~don_gym.perception.descriptor_sources.axis_end_targets`:
     the true point a perfect DON would report (:func:`ring_points_facing`, from the true object
     and camera poses in ``info``); hidden (confidence 0, point at the reported camera centre, as
     :class:`~don_gym.wrappers.KeypointObservation` reports a keypoint without depth) when it lies

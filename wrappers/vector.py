@@ -3,8 +3,8 @@
 :class:`VectorKeypointObservation` wraps a ``gymnasium.vector`` env of plain don_gym envs (with
 images) and adds what :class:`~don_gym.wrappers.KeypointObservation` adds to each sub-env's
 observation, but runs a network on the stacked images of all sub-envs at once
-(:meth:`~don_gym.descriptor_sources.NetworkDescriptors.descriptor_images`), on ``device``;
-the keypoints of each image then come from :func:`don_gym.keypoints.locate_keypoints` as in the
+(:meth:`~don_gym.perception.descriptor_sources.NetworkDescriptors.descriptor_images`), on ``device``;
+the keypoints of each image then come from :func:`don_gym.perception.keypoints.locate_keypoints` as in the
 per-env wrapper, so both give the same observations.
 """
 
@@ -19,9 +19,9 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, SyncVectorEnv, VectorEnv, VectorWrapper
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array, iterate
 
-from don_gym.descriptor_sources import DescriptorSource, NetworkDescriptors
 from don_gym.errors import DonGymError
-from don_gym.model import DenseObjectNet
+from don_gym.learning.model import DenseObjectNet
+from don_gym.perception.descriptor_sources import DescriptorSource, NetworkDescriptors
 from don_gym.wrappers.descriptors import DESCRIPTOR_BOUND
 from don_gym.wrappers.keypoints import KeypointObservation
 

@@ -114,7 +114,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def default_methods(part: ObjectModel) -> list[str]:
     """``oracle`` and those of the paper's three networks that are shipped for ``part`` (matched by its geometry)."""
-    from don_gym.grasp_benchmark import DEFAULT_METHODS
+    from don_gym.evaluation.grasp_benchmark import DEFAULT_METHODS
     from don_gym.zoo import shipped_names_for
 
     by_method = {name.split("/", 1)[1]: name for name in shipped_names_for(part)}
@@ -127,16 +127,10 @@ def run(args: argparse.Namespace) -> int:
 
     from don_gym.cli import parse_size
     from don_gym.errors import DonGymError
-    from don_gym.grasp_benchmark import (
-        DEFAULT_SENSORS,
-        GraspBenchmarkConfig,
-        outcome_table,
-        run_grasp_benchmark,
-        sweep_table,
-        write_grasp_outputs,
-    )
+    from don_gym.evaluation.grasp_benchmark import DEFAULT_SENSORS, GraspBenchmarkConfig, run_grasp_benchmark
+    from don_gym.evaluation.grasp_report import outcome_table, sweep_table, write_grasp_outputs
     from don_gym.io import check_output_dir
-    from don_gym.model import torch_device
+    from don_gym.learning.model import torch_device
     from don_gym.objects import load_object
     from don_gym.sim.task import FIXED_POSES
 
@@ -253,7 +247,9 @@ def register_bin(kinds: argparse._SubParsersAction) -> None:
 def run_bin(args: argparse.Namespace) -> int:
     import torch
 
-    from don_gym.bin_benchmark import (
+    from don_gym.cli import parse_size
+    from don_gym.errors import DonGymError
+    from don_gym.evaluation.bin_benchmark import (
         DEFAULT_PARTS,
         ORACLE_DESCRIPTORS_METHOD,
         ORACLE_METHOD,
@@ -267,10 +263,8 @@ def run_bin(args: argparse.Namespace) -> int:
         write_bin_outputs,
         write_bin_shard,
     )
-    from don_gym.cli import parse_size
-    from don_gym.errors import DonGymError
     from don_gym.io import check_output_dir
-    from don_gym.model import torch_device
+    from don_gym.learning.model import torch_device
 
     if args.merge:
         if args.out is None or args.shard is not None:
@@ -292,7 +286,7 @@ def run_bin(args: argparse.Namespace) -> int:
     if args.parts is None:
         parts = DEFAULT_PARTS
     else:
-        from don_gym.bin_dataset import parse_parts
+        from don_gym.data.bin_dataset import parse_parts
 
         parts = parse_parts_counts(parse_parts(args.parts))
     if args.methods is not None:
@@ -300,9 +294,9 @@ def run_bin(args: argparse.Namespace) -> int:
     elif args.quick:
         methods = [ORACLE_METHOD, ORACLE_DESCRIPTORS_METHOD]
     else:
-        from don_gym.sim.bin_env import _resolve_parts
+        from don_gym.sim.bin_env import resolve_parts
 
-        models, _, target = _resolve_parts(dict(parts), args.target, None)
+        models, _, target = resolve_parts(dict(parts), args.target, None)
         methods = default_methods(models[target])
         methods.insert(1, ORACLE_DESCRIPTORS_METHOD)
     image_size = None if args.image_size is None else parse_size(args.image_size, "--image-size")

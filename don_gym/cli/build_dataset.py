@@ -79,7 +79,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from don_gym.build import DatasetConfig, build_dataset, parse_shard
+    from don_gym.data.build import DatasetConfig, build_dataset, parse_shard
     from don_gym.errors import DatasetError
 
     config = DatasetConfig(
@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     shard = parse_shard(args.shard)
     try:
         if args.scene == "bin":
-            from don_gym.bin_dataset import build_bin_dataset, parse_parts
+            from don_gym.data.bin_dataset import build_bin_dataset, parse_parts
 
             report = build_bin_dataset(
                 config, parse_parts(args.parts), args.out, workers=args.workers, shard=shard, overwrite=args.overwrite

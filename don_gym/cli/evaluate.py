@@ -37,8 +37,8 @@ examples (3101 3102 3103: the development seeds):
   don-gym evaluate --data data/dev_toolcap_3101 --models oracle toolcap/supervised-edge run/model.safetensors \\
       --points 20 --depth sensor --out eval/toolcap_sensor
 
-with --pose, 6D pose estimation from the descriptors as well, after tracking (docs: don_gym.pose,
-don_gym.pose_evaluation):
+with --pose, 6D pose estimation from the descriptors as well, after tracking (docs: don_gym.perception.pose,
+don_gym.evaluation.pose_evaluation):
   don-gym evaluate --data data/dev_toolcap_3101 --pose --pose-depth sensor --out eval/toolcap_pose
 writes OUT/pose.json (per method BOP's MSSD and MSPD recalls over their thresholds, AR_MSSD, AR_MSPD, their
 mean AR (no VSD), the share with ADD-S below 10% of the diameter, time per image), OUT/pose.md,
@@ -143,11 +143,12 @@ def default_models(part: ObjectModel) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from don_gym.dataset import DONDataset
+    from don_gym.data.dataset import DONDataset
     from don_gym.errors import DonGymError
-    from don_gym.evaluation import TrackingConfig, dataset_object
+    from don_gym.evaluation.frames import dataset_object
+    from don_gym.evaluation.tracking import TrackingConfig
     from don_gym.io import check_output_dir
-    from don_gym.model import torch_device
+    from don_gym.learning.model import torch_device
 
     if args.threads < 1:
         raise DonGymError(f"--threads {args.threads}: expected at least 1")
@@ -181,13 +182,10 @@ def run(args: argparse.Namespace) -> int:
 
 def run_tracking(args: argparse.Namespace, datasets: list, config) -> int:
     """Datasets of one part: the tracking protocol, printed and written to ``--out``."""
-    from don_gym.evaluation import (
-        dataset_object,
-        evaluate_tracking,
-        seed_split,
-        tracking_report,
-        write_tracking_outputs,
-    )
+    from don_gym.evaluation.frames import dataset_object
+    from don_gym.evaluation.report import tracking_report, write_tracking_outputs
+    from don_gym.evaluation.splits import seed_split
+    from don_gym.evaluation.tracking import evaluate_tracking
 
     models = args.models if args.models is not None else default_models(dataset_object(datasets[0]))
     result = evaluate_tracking(
@@ -204,12 +202,14 @@ def run_tracking(args: argparse.Namespace, datasets: list, config) -> int:
 
 
 def run_bins(args: argparse.Namespace, datasets: list, config) -> int:
-    """Datasets of bins: the tracking protocol per part (:func:`don_gym.evaluation.evaluate_tracking_per_part`),
+    """Datasets of bins: the tracking protocol per part
+    (:func:`don_gym.evaluation.tracking.evaluate_tracking_per_part`),
     each part's report printed and written to ``--out/<part>/``."""
     from pathlib import Path
 
-    from don_gym.bin_dataset import load_part_models
-    from don_gym.evaluation import evaluate_tracking_per_part, tracking_report, write_tracking_outputs
+    from don_gym.data.bin_dataset import load_part_models
+    from don_gym.evaluation.report import tracking_report, write_tracking_outputs
+    from don_gym.evaluation.tracking import evaluate_tracking_per_part
 
     models = args.models
     if models is None:
@@ -227,8 +227,9 @@ def run_bins(args: argparse.Namespace, datasets: list, config) -> int:
 
 
 def run_pose(args: argparse.Namespace, datasets: list, models: list[str]) -> int:
-    """``--pose``: the pose evaluation of :mod:`don_gym.pose_evaluation`, printed and written to ``--out``."""
-    from don_gym.pose_evaluation import evaluate_pose, pose_table, write_pose_outputs
+    """``--pose``: the pose evaluation of :mod:`don_gym.evaluation.pose_evaluation`, printed and written to
+    ``--out``."""
+    from don_gym.evaluation.pose_evaluation import evaluate_pose, pose_table, write_pose_outputs
 
     depth = args.pose_depth or "sensor"
     result = evaluate_pose(

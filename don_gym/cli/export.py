@@ -29,9 +29,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from don_gym.dataset import DONDataset
+    from don_gym.data.dataset import DONDataset
+    from don_gym.data.export import export_scene_pdc
     from don_gym.errors import DatasetError
-    from don_gym.export import export_scene_pdc
     from don_gym.io import check_output_dir
 
     check_output_dir(args.out, "--out")
@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
                 "dataset's complete scenes"
             )
     if args.format == "bop":
-        from don_gym.export import export_bop
+        from don_gym.data.export import export_bop
 
         try:
             path = export_bop(dataset, args.out, split=args.split, scenes=scenes)

@@ -35,7 +35,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from don_gym.import_bop import import_bop
+    from don_gym.data.import_bop import import_bop
     from don_gym.io import check_output_dir
 
     check_output_dir(args.out, "--out")

@@ -6,7 +6,7 @@ import argparse
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from don_gym.methods import METHOD_DESCRIPTIONS, METHODS
+    from don_gym.learning.methods import METHOD_DESCRIPTIONS, METHODS
 
     methods = "; ".join(f"{m}: {METHOD_DESCRIPTIONS[m]}" for m in METHODS)
     parser = subparsers.add_parser(
@@ -122,11 +122,11 @@ def _crop(text: str) -> tuple[int, int] | None:
 def run(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
-    from don_gym.augment import AugmentConfig
-    from don_gym.distributed import launch_environment, reported_elsewhere, same_on_every_process
     from don_gym.errors import DonGymError
     from don_gym.io import check_output_dir
-    from don_gym.train import TrainConfig, train
+    from don_gym.learning.augment import AugmentConfig
+    from don_gym.learning.distributed import launch_environment, reported_elsewhere, same_on_every_process
+    from don_gym.learning.train import TrainConfig, train
 
     config = TrainConfig(
         method=args.method,

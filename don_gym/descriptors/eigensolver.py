@@ -14,9 +14,9 @@ import scipy.sparse.linalg as spla
 from scipy.spatial import cKDTree
 
 from don_gym.descriptors.laplacian import (
-    _components,
-    _connected_pieces,
+    connected_pieces,
     cotan_laplacian,
+    mesh_components,
     mesh_laplacian,
     normalize_to_unit_area,
 )
@@ -100,7 +100,7 @@ def _cluster(vertices: np.ndarray, edges: np.ndarray, voxel: float) -> tuple[int
     _, voxel_id = np.unique(key, return_inverse=True)
     voxel_id = voxel_id.ravel()
     inside = voxel_id[edges[:, 0]] == voxel_id[edges[:, 1]]
-    return _connected_pieces(len(vertices), edges[inside])
+    return connected_pieces(len(vertices), edges[inside])
 
 
 def _coarsen(vertices: np.ndarray, faces: np.ndarray, cluster_size: float):
@@ -275,7 +275,7 @@ class _Level:
         if P.shape[1] > 0.5 * P.shape[0] or len(coarse_faces) == 0:
             raise _CoarseningFailed(f"coarsening {P.shape[0]} -> {P.shape[1]} vertices")
         coarse_vertices, coarse_faces, P = _drop_unreferenced(coarse_vertices, coarse_faces, P)
-        if _components(len(coarse_vertices), coarse_faces)[0] > 1:
+        if mesh_components(len(coarse_vertices), coarse_faces)[0] > 1:
             raise _CoarseningFailed("the coarse mesh falls apart into several pieces")
         self.P, self.PT = P, sp.csr_matrix(P.T)
         self.coarse = _Level(coarse_vertices, coarse_faces, *mesh_laplacian(coarse_vertices, coarse_faces))
@@ -456,11 +456,11 @@ def laplacian_eigenpairs(
     """
     faces = np.asarray(faces, dtype=np.int64)
     normalized, area = normalize_to_unit_area(np.asarray(vertices, dtype=np.float64), faces)
-    w, Y, _, solver = _eigenpairs(normalized, faces, count, method, {})
+    w, Y, _, solver = mesh_eigenpairs(normalized, faces, count, method, {})
     return w / area, Y / math.sqrt(area), solver
 
 
-def _eigenpairs(
+def mesh_eigenpairs(
     vertices: np.ndarray, faces: np.ndarray, count: int, method: str, cache: dict
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
     """(eigenvalues, eigenvectors, lumped mass, solver) of a connected unit-area mesh; ``cache``

@@ -11,9 +11,9 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from don_gym.descriptors.eigensolver import _eigenpairs
-from don_gym.descriptors.field import DescriptorField, _as_mesh
-from don_gym.descriptors.laplacian import _components, face_areas, normalize_to_unit_area
+from don_gym.descriptors.eigensolver import mesh_eigenpairs
+from don_gym.descriptors.field import DescriptorField, mesh_arrays
+from don_gym.descriptors.laplacian import face_areas, mesh_components, normalize_to_unit_area
 from don_gym.errors import DonGymError, MeshError, SeveralPiecesError
 from don_gym.objects import ObjectModel
 
@@ -385,11 +385,11 @@ def embed(
         raise DonGymError(f"components={components!r}: expected 'error' or 'largest'")
     if not isinstance(method, str) or method not in ("auto", "direct", "multilevel"):
         raise DonGymError(f"method={method!r}: expected 'auto', 'direct' or 'multilevel'")
-    vertices, faces, digest = _as_mesh(mesh)
+    vertices, faces, digest = mesh_arrays(mesh)
     n_all = len(vertices)
 
     # Choose the piece to embed.
-    _, label = _components(n_all, faces)
+    _, label = mesh_components(n_all, faces)
     referenced = np.zeros(n_all, dtype=bool)
     referenced[faces.ravel()] = True
     piece_labels = np.flatnonzero(np.bincount(label[faces[:, 0]]))
@@ -432,7 +432,7 @@ def embed(
     # groups) and double while the groups do not close.
     count = min(n - 1, dim if not symmetric else dim + 2)
     while True:
-        w, Y, mass, solver = _eigenpairs(sub_vertices, sub_faces, count, method, cache)
+        w, Y, mass, solver = mesh_eigenpairs(sub_vertices, sub_faces, count, method, cache)
         result = descriptor_functions(w, Y, mass, sub_vertices, dim, symmetric, tolerance, complete=count >= n - 1)
         if result is not None:
             break

@@ -25,7 +25,7 @@ _FORMAT_VERSION = 1
 FIELD_MATCH_ATOL = 1e-3
 
 
-def _as_mesh(mesh: trimesh.Trimesh | ObjectModel) -> tuple[np.ndarray, np.ndarray, str]:
+def mesh_arrays(mesh: trimesh.Trimesh | ObjectModel) -> tuple[np.ndarray, np.ndarray, str]:
     """(vertices float64 (N,3), faces int64 (F,3), mesh_hash) of a Trimesh or ObjectModel, validated."""
     if isinstance(mesh, ObjectModel):
         tm, digest = mesh.mesh, mesh.mesh_hash
@@ -172,7 +172,7 @@ class DescriptorField:
         """(M, dim) descriptors at surface points of ``mesh`` (the mesh this field was computed on,
         checked by its content hash, which costs a pass over the mesh: in per-frame loops call
         :func:`interpolate_field` with the faces instead)."""
-        _, faces, digest = _as_mesh(mesh)
+        _, faces, digest = mesh_arrays(mesh)
         if digest != self.mesh_hash:
             raise DonGymError(
                 f"descriptor field is for mesh {self.mesh_hash}, but the given mesh is {digest}; "

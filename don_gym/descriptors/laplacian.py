@@ -326,12 +326,12 @@ def cotan_laplacian(
     return L, mass
 
 
-def _components(n_vertices: int, faces: np.ndarray) -> tuple[int, np.ndarray]:
+def mesh_components(n_vertices: int, faces: np.ndarray) -> tuple[int, np.ndarray]:
     """Connected components over face edges (labels (N,)); unreferenced vertices are their own."""
-    return _connected_pieces(n_vertices, np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]]))
+    return connected_pieces(n_vertices, np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]]))
 
 
-def _connected_pieces(n_vertices: int, edges: np.ndarray) -> tuple[int, np.ndarray]:
+def connected_pieces(n_vertices: int, edges: np.ndarray) -> tuple[int, np.ndarray]:
     """(number of pieces, labels (N,)) of the graph with undirected ``edges`` (E, 2)."""
     graph = sp.csr_matrix((np.ones(len(edges), np.int8), (edges[:, 0], edges[:, 1])), shape=(n_vertices, n_vertices))
     return connected_components(graph, directed=False)

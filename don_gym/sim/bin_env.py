@@ -27,8 +27,8 @@ from don_gym.sim.camera import decode_segmentation
 from don_gym.sim.env import (
     CONTROL_STEPS,
     PickPlaceEnv,
-    _check_view_arguments,
-    _is_int,
+    check_view_arguments,
+    is_integer,
 )
 from don_gym.sim.robot import FINGER_JOINTS, Panda, wrap_angle
 from don_gym.sim.script import GraspPlaceScript
@@ -45,7 +45,7 @@ GRASP_STEPS_PER_INSTANCE = 2
 EE_STEPS_PER_TARGET = 200
 
 
-def _resolve_parts(parts: Any, target: Any, part_scales: Any) -> tuple[dict[str, ObjectModel], dict[str, int], str]:
+def resolve_parts(parts: Any, target: Any, part_scales: Any) -> tuple[dict[str, ObjectModel], dict[str, int], str]:
     """``(models, counts, target)`` keyed by part name (:func:`~don_gym.objects.part_name`), in the order given;
     DonGymError naming the input for anything a user can get wrong, before and after loading the meshes."""
     example = "e.g. {'toolcap': 3, 'shaft': 2}"
@@ -67,7 +67,7 @@ def _resolve_parts(parts: Any, target: Any, part_scales: Any) -> tuple[dict[str,
             raise DonGymError(
                 f"parts: key {key!r}: expected a built-in name ({', '.join(builtin_names())}) or a mesh path"
             )
-        if not _is_int(count) or count < 0:
+        if not is_integer(count) or count < 0:
             raise DonGymError(f"parts: count {count!r} of {str(key)!r}: expected an integer >= 0")
         key = str(key)
         if key not in builtin_names() and not Path(key).expanduser().is_file():
@@ -189,13 +189,13 @@ class BinPickEnv(PickPlaceEnv):
         background: str = "plain",
     ):
         gym.Env.__init__(self)
-        _check_view_arguments(control, reward_type, ("sparse",), background, render_mode, observe_images)
-        if max_steps is not None and (not _is_int(max_steps) or max_steps < 1):
+        check_view_arguments(control, reward_type, ("sparse",), background, render_mode, observe_images)
+        if max_steps is not None and (not is_integer(max_steps) or max_steps < 1):
             raise DonGymError(f"max_steps={max_steps!r}: expected None or a positive integer number of steps")
-        if not _is_int(max_failed_attempts) or max_failed_attempts < 1:
+        if not is_integer(max_failed_attempts) or max_failed_attempts < 1:
             raise DonGymError(f"max_failed_attempts={max_failed_attempts!r}: expected a positive integer")
         image_size = self._set_camera_options(image_size, render_size, sensor, renderer)
-        self.models, self.counts, self.target = _resolve_parts(parts, target, part_scales)
+        self.models, self.counts, self.target = resolve_parts(parts, target, part_scales)
         self.control = control
         self.reward_type = reward_type
         self.render_mode = render_mode
@@ -304,7 +304,7 @@ class BinPickEnv(PickPlaceEnv):
 
     # ----------------------------------------------------------------- reset
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
-        if seed is not None and (not _is_int(seed) or seed < 0):
+        if seed is not None and (not is_integer(seed) or seed < 0):
             raise DonGymError(f"seed={seed!r}: expected a non-negative integer or None")
         if options is not None and (not isinstance(options, Mapping) or options):
             raise DonGymError(f"options={options!r}: the bin env takes no reset options; expected None or {{}}")
@@ -441,7 +441,7 @@ class BinPickEnv(PickPlaceEnv):
             if chosen is None:
                 raise DonGymError("oracle_action(): no target instance is left in play; reset() first")
         else:
-            if not _is_int(instance) or not 0 <= instance < len(self.task.instances):
+            if not is_integer(instance) or not 0 <= instance < len(self.task.instances):
                 raise DonGymError(f"instance={instance!r}: expected an instance id 0..{len(self.task.instances) - 1}")
             chosen = self.task.instances[int(instance)]
             if not chosen.in_play:

@@ -132,7 +132,7 @@ class BinSceneRecorder(SceneRecorder):
 
 def bin_region_world(margin_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """``(T_world_box, half_extents_m)``: the inside of the bin from its floor to the walls' rim plus 3 cm,
-    shrunk by ``margin_m`` sideways (a region for :func:`~don_gym.fusion.object_mask_from_depth`)."""
+    shrunk by ``margin_m`` sideways (a region for :func:`~don_gym.data.fusion.object_mask_from_depth`)."""
     height = BIN_WALL_HEIGHT_M + 0.03
     T = np.eye(4)
     T[:3, 3] = [BIN_CENTER_XY_M[0], BIN_CENTER_XY_M[1], TABLE_TOP_Z_M + height / 2]

@@ -120,7 +120,7 @@ def projection_matrix_gl(
     The principal point is offset so that a point rendered here lands on the pixel that
     :func:`don_gym.geometry.project_points` predicts (pixel centres at integer coordinates).
     The offset depends on the renderer and was measured against Embree ray casting through
-    pixel centres (:mod:`don_gym.render`): the EGL plugin follows OpenGL, whose NDC spans pixel
+    pixel centres (:mod:`don_gym.data.render`): the EGL plugin follows OpenGL, whose NDC spans pixel
     edges, so it needs ``(+0.5, +0.5)``; TinyRenderer rasterises rows from the bottom and needs
     ``(0, +1)``. With these, object masks agree at IoU 0.99-1.0 and depth to 0.02 mm; with the
     other renderer's offset only at 0.89-0.95. ``tests/test_render.py`` and

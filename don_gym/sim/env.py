@@ -63,7 +63,7 @@ OVERVIEW_EYE_M = np.array([1.15, -0.55, 0.75])
 OVERVIEW_TARGET_M = np.array([0.45, 0.15, 0.02])
 
 
-def _is_int(value: Any) -> bool:
+def is_integer(value: Any) -> bool:
     return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
 
 
@@ -73,7 +73,7 @@ def _as_size(image_size: Any, what: str, allow_none: bool = True) -> tuple[int, 
     expected = "(width, height) in pixels" + (" or None" if allow_none else "")
     if isinstance(image_size, (str, bytes)) or not isinstance(image_size, (tuple, list, np.ndarray)):
         raise DonGymError(f"{what}={image_size!r}: expected {expected}")
-    if len(image_size) != 2 or not all(_is_int(v) for v in image_size):
+    if len(image_size) != 2 or not all(is_integer(v) for v in image_size):
         raise DonGymError(f"{what}={image_size!r}: expected {expected}, two integers")
     width, height = (int(v) for v in image_size)
     if not (8 <= width <= 1280 and 8 <= height <= 960):
@@ -86,7 +86,7 @@ def _check_choice(value: Any, what: str, choices: tuple[str, ...] | list[str]) -
         raise DonGymError(f"{what}={value!r} is unknown; expected one of {list(choices)}")
 
 
-def _check_view_arguments(
+def check_view_arguments(
     control: Any,
     reward_type: Any,
     reward_types: tuple[str, ...],
@@ -123,8 +123,8 @@ def _check_arguments(
     scale_ok = isinstance(object_scale, (int, float, np.integer, np.floating)) and not isinstance(object_scale, bool)
     if object_scale is not None and not (scale_ok and np.isfinite(object_scale) and object_scale > 0):
         raise DonGymError(f"object_scale={object_scale!r}: expected a positive, finite factor (mesh units to metres)")
-    _check_view_arguments(control, reward_type, REWARD_TYPES, background, render_mode, observe_images)
-    if not _is_int(max_steps) or max_steps < 1:
+    check_view_arguments(control, reward_type, REWARD_TYPES, background, render_mode, observe_images)
+    if not is_integer(max_steps) or max_steps < 1:
         raise DonGymError(f"max_steps={max_steps!r}: expected a positive integer number of steps")
 
 
@@ -366,7 +366,7 @@ class PickPlaceEnv(gym.Env):
 
     # ----------------------------------------------------------------- reset
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
-        if seed is not None and (not _is_int(seed) or seed < 0):
+        if seed is not None and (not is_integer(seed) or seed < 0):
             raise DonGymError(f"seed={seed!r}: expected a non-negative integer or None")
         if options is not None and not isinstance(options, Mapping):
             raise DonGymError(f"options={options!r}: expected a dict such as {{'pose_id': 3}} or None")
@@ -375,7 +375,7 @@ class PickPlaceEnv(gym.Env):
         if unknown:
             raise DonGymError(f"options {unknown}: unknown; reset() takes {list(RESET_OPTIONS)}")
         pose_id = options.get("pose_id")
-        if pose_id is not None and (not _is_int(pose_id) or not 0 <= pose_id < len(FIXED_POSES)):
+        if pose_id is not None and (not is_integer(pose_id) or not 0 <= pose_id < len(FIXED_POSES)):
             raise DonGymError(f"options['pose_id']={pose_id!r}: expected an integer 0..{len(FIXED_POSES) - 1}")
         hand_start = options.get("hand_start", "observe")
         if not isinstance(hand_start, str) or hand_start not in HAND_STARTS:
