@@ -34,7 +34,6 @@ import gymnasium as gym
 import numpy as np
 
 from don_gym.errors import DonGymError
-from don_gym.geometry import CameraIntrinsics
 from don_gym.learning.model import DenseObjectNet
 from don_gym.objects import ObjectModel
 from don_gym.perception.descriptor_sources import (
@@ -48,9 +47,9 @@ from don_gym.perception.descriptor_sources import (
     env_object_model,
     load_descriptor_source,
 )
-from don_gym.perception.keypoints import DEFAULT_CONFIDENCE_SIGMA, DEFAULT_SOFT_TEMPERATURE, locate_keypoints
+from don_gym.perception.keypoints import DEFAULT_CONFIDENCE_SIGMA, DEFAULT_SOFT_TEMPERATURE
 from don_gym.sim.task import grasp_axial_position_m
-from don_gym.wrappers.keypoints import KeypointObservation
+from don_gym.wrappers.keypoints import KeypointObservation, KeypointSettings
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -177,9 +176,10 @@ class AxisGraspAgent:
                 f"two descriptors of the {source.method!r} model's length {source.descriptor_dim}"
             )
         self.reference_descriptors = reference
-        self.window_m = self.targets.window_m if window_m is None else float(window_m)
-        self.temperature = float(temperature)
-        self.confidence_sigma = float(confidence_sigma)
+        #: How the two keypoints are located, here and in :meth:`wrap`'s wrapper alike.
+        self.settings = KeypointSettings(
+            self.targets.window_m if window_m is None else float(window_m), float(temperature), float(confidence_sigma)
+        )
         #: Axial position (m from the centre of mass along +axis) the grasp aims at.
         self.grasp_axial_m = grasp_axial_position_m(object_model)
 
@@ -194,9 +194,12 @@ class AxisGraspAgent:
             self.source,
             self.reference_descriptors,
             keep_images=keep_images,
-            window_m=self.window_m,
-            temperature=self.temperature,
-            confidence_sigma=self.confidence_sigma,
+            window_m=self.settings.window_m,
+            temperature=self.settings.temperature,
+            confidence_sigma=self.settings.confidence_sigma,
+            min_radius_px=self.settings.min_radius_px,
+            max_radius_px=self.settings.max_radius_px,
+            border_margin_px=self.settings.border_margin_px,
         )
 
     # ----------------------------------------------------------------- acting
@@ -211,17 +214,7 @@ class AxisGraspAgent:
                 )
             return points
         if "descriptors" in obs and "depth" in obs:
-            found = locate_keypoints(
-                obs["descriptors"],
-                obs["depth"],
-                CameraIntrinsics.from_array(obs["camera_intrinsics"]),
-                np.asarray(obs["camera_pose"], dtype=np.float64),
-                self.reference_descriptors,
-                window_m=self.window_m,
-                temperature=self.temperature * self.source.descriptor_scale,
-                sigma=self.confidence_sigma * self.source.descriptor_scale,
-                border_margin_px=self.source.border_margin_px,
-            )
+            found = self.settings.locate(obs, self.source, self.reference_descriptors)
             return found.points_world
         raise DonGymError(
             "observation has neither 'keypoint_points' nor 'descriptors'; wrap the env with agent.wrap(env)"

@@ -17,7 +17,6 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Sequence
-from statistics import NormalDist
 
 import numpy as np
 
@@ -49,13 +48,11 @@ def wilson_interval(successes: int, trials: int, confidence: float = DEFAULT_CON
     _check_confidence(confidence)
     if trials == 0:
         return 0.0, 1.0
-    z = NormalDist().inv_cdf(0.5 + confidence / 2.0)
-    n, p = float(trials), successes / trials
-    denominator = 1.0 + z * z / n
-    center = (p + z * z / (2.0 * n)) / denominator
-    half = z * math.sqrt(p * (1.0 - p) / n + z * z / (4.0 * n * n)) / denominator
+    from scipy.stats import binomtest  # SciPy's own Wilson score interval; imported here, it loads slowly
+
+    interval = binomtest(int(successes), int(trials)).proportion_ci(confidence_level=confidence, method="wilson")
     # The bounds are exactly 0 and 1 at 0/n and n/n; rounding must not move them past.
-    return max(0.0, center - half), min(1.0, center + half)
+    return max(0.0, float(interval.low)), min(1.0, float(interval.high))
 
 
 def format_interval(successes: int, trials: int, confidence: float = DEFAULT_CONFIDENCE) -> str:

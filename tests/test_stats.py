@@ -92,3 +92,27 @@ def test_estimate_text() -> None:
     assert format_estimate(0.0123, (0.01, 0.02), digits=3) == "0.012 [0.010, 0.020]"
     assert format_estimate(None, [1.0, 2.0]) == "-"
     assert format_estimate(2.0, None) == "2.0"
+
+
+def _wilson_by_formula(successes: int, trials: int, confidence: float) -> tuple[float, float]:
+    """The Wilson score interval written out (Wilson 1927), independent of SciPy."""
+    from statistics import NormalDist
+
+    z = NormalDist().inv_cdf(0.5 + confidence / 2.0)
+    n, p = float(trials), successes / trials
+    denominator = 1.0 + z * z / n
+    centre = (p + z * z / (2.0 * n)) / denominator
+    half = z * (p * (1.0 - p) / n + z * z / (4.0 * n * n)) ** 0.5 / denominator
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+@pytest.mark.parametrize("confidence", [0.8, 0.95, 0.99])
+def test_wilson_interval_equals_the_formula_on_a_grid_of_counts(confidence: float) -> None:
+    for trials in (1, 2, 3, 7, 8, 24, 100, 211, 1000):
+        for successes in sorted({0, 1, trials // 3, trials // 2, trials - 1, trials}):
+            if 0 <= successes <= trials:
+                got = wilson_interval(successes, trials, confidence)
+                assert got == pytest.approx(_wilson_by_formula(successes, trials, confidence), abs=1e-12), (
+                    successes,
+                    trials,
+                )

@@ -36,7 +36,7 @@ from don_gym.perception.descriptor_sources import (
 from don_gym.wrappers.descriptors import DESCRIPTOR_BOUND, DescriptorObservation
 from don_gym.wrappers.goals import HandStarts, KeypointGoal, make_goal_env, make_keypoint_env
 from don_gym.wrappers.images import DescriptorImage
-from don_gym.wrappers.keypoints import KeypointObservation
+from don_gym.wrappers.keypoints import KeypointObservation, KeypointSettings
 from don_gym.wrappers.rl import KeypointFeatures, KeypointGraspAction
 from don_gym.wrappers.simulated_keypoints import KeypointNoiseModel, SimulatedKeypoints
 from don_gym.wrappers.vector import VectorKeypointObservation
@@ -53,6 +53,7 @@ __all__ = [
     "KeypointGraspAction",
     "KeypointNoiseModel",
     "KeypointObservation",
+    "KeypointSettings",
     "NetworkDescriptors",
     "OracleDescriptors",
     "ReferenceFrame",

@@ -6,6 +6,7 @@ axis-end rings of :func:`don_gym.perception.descriptor_sources.axis_end_targets`
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +30,7 @@ from don_gym.perception.keypoints import (
     DEFAULT_MAX_RADIUS_PX,
     DEFAULT_MIN_RADIUS_PX,
     DEFAULT_SOFT_TEMPERATURE,
+    Keypoints,
     locate_keypoints,
     match_region,
 )
@@ -40,6 +42,39 @@ DEFAULT_WINDOW_M = 0.02
 POINT_BOUND_M = 10.0
 #: Keys dropped with ``keep_images=False``.
 IMAGE_KEYS = ("rgb", "depth", "descriptors")
+
+
+@dataclass(frozen=True)
+class KeypointSettings:
+    """How tracked keypoints are located in an observation (:func:`~don_gym.perception.keypoints.locate_keypoints`):
+    the soft-match radius ``window_m`` (metres; 0: plain best match), the descriptor-distance scales of the soft
+    match and the confidence in the part's own field's units (multiplied by the source's ``descriptor_scale``),
+    the depth windows ``min_radius_px``/``max_radius_px`` and ``border_margin_px`` (None: the source's own). The
+    one place the wrapper and the :class:`~don_gym.agents.AxisGraspAgent` take them from."""
+
+    window_m: float
+    temperature: float = DEFAULT_SOFT_TEMPERATURE
+    confidence_sigma: float = DEFAULT_CONFIDENCE_SIGMA
+    min_radius_px: int = DEFAULT_MIN_RADIUS_PX
+    max_radius_px: int = DEFAULT_MAX_RADIUS_PX
+    border_margin_px: int | None = None
+
+    def locate(self, obs: dict[str, np.ndarray], source: DescriptorSource, reference: np.ndarray) -> Keypoints:
+        """The keypoints of the (K, D) ``reference`` descriptors in an observation with ``descriptors`` (H, W, D),
+        ``depth`` (H, W) metres, ``camera_intrinsics`` and ``camera_pose`` (``T_world_camera``)."""
+        return locate_keypoints(
+            obs["descriptors"],
+            obs["depth"],
+            CameraIntrinsics.from_array(obs["camera_intrinsics"]),
+            np.asarray(obs["camera_pose"], dtype=np.float64),
+            reference,
+            window_m=self.window_m,
+            temperature=self.temperature * source.descriptor_scale,
+            sigma=self.confidence_sigma * source.descriptor_scale,
+            min_radius_px=self.min_radius_px,
+            max_radius_px=self.max_radius_px,
+            border_margin_px=source.border_margin_px if self.border_margin_px is None else self.border_margin_px,
+        )
 
 
 class KeypointObservation(DescriptorObservation):
@@ -133,11 +168,6 @@ class KeypointObservation(DescriptorObservation):
         if not (np.isfinite(window) and window >= 0):
             raise DonGymError(f"window_m={window_m!r}: expected a radius >= 0 in metres")
         self.reference_descriptors = reference
-        self.window_m = window
-        self.temperature = float(temperature)
-        self.confidence_sigma = float(confidence_sigma)
-        self.min_radius_px = int(min_radius_px)
-        self.max_radius_px = int(max_radius_px)
         self.keep_images = bool(keep_images)
 
         K = len(reference)
@@ -151,7 +181,9 @@ class KeypointObservation(DescriptorObservation):
                 f"{error} ({source}, for the env's {width}x{height} images; pass a smaller border_margin_px, "
                 "0 to search the whole frame)"
             ) from None
-        self.border_margin_px = int(margin)
+        self.settings = KeypointSettings(
+            window, float(temperature), float(confidence_sigma), int(min_radius_px), int(max_radius_px), int(margin)
+        )
         entries = dict(self.observation_space.spaces)
         if not self.keep_images:
             for key in IMAGE_KEYS:
@@ -165,25 +197,23 @@ class KeypointObservation(DescriptorObservation):
         entries["keypoint_confidence"] = spaces.Box(0.0, 1.0, shape=(K,), dtype=np.float32)
         self.observation_space = spaces.Dict(entries)
 
+    @property
+    def window_m(self) -> float:
+        """Soft-match radius in metres (:attr:`settings`)."""
+        return self.settings.window_m
+
+    @property
+    def border_margin_px(self) -> int:
+        """Pixels along each edge of the frame where matches are not searched (:attr:`settings`)."""
+        return int(self.settings.border_margin_px)
+
     def _add_descriptors(self, obs: dict[str, np.ndarray], info: dict[str, Any]) -> dict[str, np.ndarray]:
         return self.add_keypoints(super()._add_descriptors(obs, info))
 
     def add_keypoints(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """``obs`` with ``descriptors`` (H, W, D) plus the tracked keypoints (and without the images
         unless ``keep_images``); shared with :class:`~don_gym.wrappers.VectorKeypointObservation`."""
-        found = locate_keypoints(
-            obs["descriptors"],
-            obs["depth"],
-            CameraIntrinsics.from_array(obs["camera_intrinsics"]),
-            np.asarray(obs["camera_pose"], dtype=np.float64),
-            self.reference_descriptors,
-            window_m=self.window_m,
-            temperature=self.temperature * self.source.descriptor_scale,
-            sigma=self.confidence_sigma * self.source.descriptor_scale,
-            min_radius_px=self.min_radius_px,
-            max_radius_px=self.max_radius_px,
-            border_margin_px=self.border_margin_px,
-        )
+        found = self.settings.locate(obs, self.source, self.reference_descriptors)
         if not self.keep_images:
             obs = {k: v for k, v in obs.items() if k not in IMAGE_KEYS}
         obs["keypoint_pixels"] = found.pixels.astype(np.float32)

@@ -549,50 +549,67 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> T
             torch.distributed.destroy_process_group()
 
 
-def _train(
-    config: TrainConfig,
-    resume: bool,
-    progress: bool,
-    launch: LaunchEnvironment,
-    device: torch.device,
-    amp_dtype: torch.dtype | None,
-    source: SupervisedFrames | CorrespondencePairs,
-    held: list[DirectoryLock],
-) -> TrainResult:
-    out = Path(config.out)
-    info = source.data.info
-    intrinsics = source.data.scenes[0].intrinsics
-    image_size = (intrinsics.width, intrinsics.height)
-    identity = dataset_identity(source.data)
-    supervised = is_supervised(config.method)
-    part_identity = dataset_part_identity(source.data, supervised) if launch.is_main else None
-    target_background = source.background if isinstance(source, SupervisedFrames) else None
-    part_space = getattr(source, "part_space", None)
-    part_space_record = part_space.to_dict() if part_space is not None else None
+class _TrainingRun:
+    """One session of a training run: the network, its optimiser and the losses so far, how a session starts
+    (the run directory, a resumed state) and how it is saved. :func:`_train`'s loop drives it."""
 
-    # A network of several parts outputs its space's D (one more than the fields' with the identity layout).
-    descriptor_dim = part_space.dim if part_space is not None and supervised else int(info["descriptor_dim"])
+    def __init__(
+        self,
+        config: TrainConfig,
+        launch: LaunchEnvironment,
+        device: torch.device,
+        amp_dtype: torch.dtype | None,
+        source: SupervisedFrames | CorrespondencePairs,
+    ) -> None:
+        self.config, self.launch, self.device, self.amp_dtype = config, launch, device, amp_dtype
+        self.out = Path(config.out)
+        self.info = source.data.info
+        intrinsics = source.data.scenes[0].intrinsics
+        self.image_size = (intrinsics.width, intrinsics.height)
+        self.identity = dataset_identity(source.data)
+        self.supervised = is_supervised(config.method)
+        self.part_identity = dataset_part_identity(source.data, self.supervised) if launch.is_main else None
+        self.target_background = source.background if isinstance(source, SupervisedFrames) else None
+        part_space = getattr(source, "part_space", None)
+        self.part_space_record = part_space.to_dict() if part_space is not None else None
+        # A network of several parts outputs its space's D (one more than the fields' with the identity layout).
+        descriptor_dim = (
+            part_space.dim if part_space is not None and self.supervised else int(self.info["descriptor_dim"])
+        )
 
-    torch.manual_seed(config.seed)
-    model = DenseObjectNet(config.arch, descriptor_dim).to(device)
-    optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate(), weight_decay=config.weight_decay)
-    scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=config.lr_decay_every, gamma=config.lr_decay)
-    scaler = torch.amp.GradScaler(device.type) if amp_dtype == torch.float16 else None
+        torch.manual_seed(config.seed)
+        self.model = DenseObjectNet(config.arch, descriptor_dim).to(device)
+        self.optimizer = torch.optim.Adam(
+            self.model.parameters(), lr=config.learning_rate(), weight_decay=config.weight_decay
+        )
+        self.scheduler = torch.optim.lr_scheduler.StepLR(
+            self.optimizer, step_size=config.lr_decay_every, gamma=config.lr_decay
+        )
+        self.scaler = torch.amp.GradScaler(device.type) if amp_dtype == torch.float16 else None
+        self.start_step = 0
+        # Training time and images of earlier sessions of a resumed run; None when unknown.
+        self.earlier_seconds: float | None = 0.0
+        self.earlier_images: int | None = 0
+        self.rows: list[dict[str, Any]] = []
+        self.images_seen = 0
+        self.start_time = time.perf_counter()
+        self.title = f"{config.method} on {self.info['object']} ({config.arch})"
 
-    def start() -> _RunStart:
+    def open_run_dir(self, resume: bool, held: list[DirectoryLock]) -> _RunStart:
         """Rank 0: the run directory's lock (kept in ``held`` until the run ends), everything that reads the
         run directory or pretrained weights, then the first write."""
+        out, config = self.out, self.config
         lock, created = None, None
         try:
             _check_run_dir_place(out)
             with _writing(out):
                 lock, created = _hold_run_dir(out)
-            run = _inspect_run_dir(out, config, identity, resume)
+            run = _inspect_run_dir(out, config, self.identity, resume)
             if run.state is None and config.pretrained_path is not None:
                 # Other processes receive these weights with DistributedDataParallel's first broadcast.
-                model.load_pretrained_encoder(config.pretrained_path)
+                self.model.load_pretrained_encoder(config.pretrained_path)
             with _writing(out / RUN_CONFIG):
-                saved = {**asdict(config), DATASET_IDENTITY_KEY: identity}
+                saved = {**asdict(config), DATASET_IDENTITY_KEY: self.identity}
                 write_text_atomic(out / RUN_CONFIG, json.dumps(saved, indent=1) + "\n")
         except DonGymError as exc:
             if lock is not None:
@@ -603,120 +620,92 @@ def _train(
         held.append(lock)
         return run
 
-    run = broadcast_from_main(start() if launch.is_main else None)
-    if run.error is not None:
-        raise same_on_every_process(DonGymError(run.error))
-    start_step = 0
-    # Training time and images of earlier sessions of a resumed run; None when unknown.
-    earlier_seconds: float | None = 0.0
-    earlier_images: int | None = 0
-    if run.state is not None:
-        state = run.state
-        try:
-            model.load_state_dict(state["model"])
-            optimizer.load_state_dict(state["optimizer"])
-            scheduler.load_state_dict(state["scheduler"])
-            if scaler is not None and "scaler" in state:
-                scaler.load_state_dict(state["scaler"])
-        except (KeyError, RuntimeError, ValueError) as exc:
-            detail = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-            raise same_on_every_process(
-                DonGymError(f"{out / TRAIN_STATE}: does not fit this run's network or optimiser ({detail})")
-            ) from None
-        start_step = int(state["step"])
-        earlier_seconds = float(state["seconds"]) if "seconds" in state else None
-        earlier_images = int(state["images_seen"]) if "images_seen" in state else None
-    rows: list[dict[str, Any]] = list(run.rows)
-    del run
+    def restore(self, run: _RunStart) -> None:
+        """The resumed state of ``run`` (if any) into the network and optimiser, and its losses so far."""
+        if run.state is not None:
+            state = run.state
+            try:
+                self.model.load_state_dict(state["model"])
+                self.optimizer.load_state_dict(state["optimizer"])
+                self.scheduler.load_state_dict(state["scheduler"])
+                if self.scaler is not None and "scaler" in state:
+                    self.scaler.load_state_dict(state["scaler"])
+            except (KeyError, RuntimeError, ValueError) as exc:
+                detail = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+                raise same_on_every_process(
+                    DonGymError(f"{self.out / TRAIN_STATE}: does not fit this run's network or optimiser ({detail})")
+                ) from None
+            self.start_step = int(state["step"])
+            self.earlier_seconds = float(state["seconds"]) if "seconds" in state else None
+            self.earlier_images = int(state["images_seen"]) if "images_seen" in state else None
+        self.rows = list(run.rows)
 
-    net: torch.nn.Module = model
-    if launch.world_size > 1:
-        synchronize_batchnorm(model, device)
-        net = torch.nn.parallel.DistributedDataParallel(
-            model, device_ids=[device.index] if device.type == "cuda" else None
+    def network(self) -> torch.nn.Module:
+        """The network the steps train: the model, wrapped for several processes."""
+        if self.launch.world_size == 1:
+            return self.model
+        synchronize_batchnorm(self.model, self.device)
+        return torch.nn.parallel.DistributedDataParallel(
+            self.model, device_ids=[self.device.index] if self.device.type == "cuda" else None
         )
-    batches = StepBatches(
-        source, config.steps, config.batch_size, config.seed, AugmentConfig(**config.augment), launch.rank,
-        launch.world_size,
-    )  # fmt: skip
-    loader = step_loader(batches, start_step, config.workers, pin_memory=device.type == "cuda")
-    images_per_step = config.batch_size * (1 if supervised else 2)
-    title = f"{config.method} on {info['object']} ({config.arch})"
 
-    def save_state(step: int, seconds: float | None = None) -> None:
+    def session_seconds(self) -> float:
+        # Resuming a finished run trains nothing: it reports, and keeps, the run's own time.
+        return time.perf_counter() - self.start_time if self.config.steps > self.start_step else 0.0
+
+    def save_state(self, step: int, seconds: float | None = None) -> None:
         """The resumable state; ``seconds`` this session's training time (default: until now)."""
-        state_path = out / TRAIN_STATE
+        state_path = self.out / TRAIN_STATE
+        timing = (
+            {}
+            if self.earlier_seconds is None or self.earlier_images is None
+            else {
+                "seconds": self.earlier_seconds + (self.session_seconds() if seconds is None else seconds),
+                "images_seen": self.earlier_images + self.images_seen,
+            }
+        )
         with _writing(state_path):
             with atomic_path(state_path) as tmp:
                 torch.save(
                     {
-                        "model": model.state_dict(),
-                        "optimizer": optimizer.state_dict(),
-                        "scheduler": scheduler.state_dict(),
+                        "model": self.model.state_dict(),
+                        "optimizer": self.optimizer.state_dict(),
+                        "scheduler": self.scheduler.state_dict(),
                         "step": step,
-                        **({} if scaler is None else {"scaler": scaler.state_dict()}),
-                        **(
-                            {}
-                            if earlier_seconds is None or earlier_images is None
-                            else {
-                                "seconds": earlier_seconds + (session_seconds() if seconds is None else seconds),
-                                "images_seen": earlier_images + images_seen,
-                            }
-                        ),
+                        **({} if self.scaler is None else {"scaler": self.scaler.state_dict()}),
+                        **timing,
                     },
                     tmp,
                 )
-        with _writing(out / LOSS_CSV):
-            _write_loss_csv(out / LOSS_CSV, rows)
+        with _writing(self.out / LOSS_CSV):
+            _write_loss_csv(self.out / LOSS_CSV, self.rows)
 
-    def save(step: int, path: Path, seconds: float | None = None) -> None:
+    def save(self, step: int, path: Path, seconds: float | None = None) -> None:
         """Rank 0: the weights at ``path``, then the state and losses (a crash in between keeps the older state)."""
-        if not launch.is_main:
+        if not self.launch.is_main:
             return
+        metadata = checkpoint_metadata(
+            self.config, self.info, self.image_size, step, self.target_background, self.part_space_record
+        )
         with _writing(path):
-            save_checkpoint(
-                path,
-                model,
-                checkpoint_metadata(config, info, image_size, step, target_background, part_space_record),
-                identity=part_identity,
-            )
-        save_state(step, seconds)
-        with _writing(out / LOSS_PNG):
-            plot_loss_curve(rows, out / LOSS_PNG, title)
+            save_checkpoint(path, self.model, metadata, identity=self.part_identity)
+        self.save_state(step, seconds)
+        with _writing(self.out / LOSS_PNG):
+            plot_loss_curve(self.rows, self.out / LOSS_PNG, self.title)
 
-    step_loss = _supervised_step_loss if supervised else _contrastive_step_loss(config)
-    net.train()
-    images_seen = 0
-    data_wait = 0.0
-    start_time = steady_from = time.perf_counter()
-
-    def session_seconds() -> float:
-        # Resuming a finished run trains nothing: it reports, and keeps, the run's own time.
-        return time.perf_counter() - start_time if config.steps > start_step else 0.0
-
-    bar = tqdm(
-        range(start_step, config.steps),
-        initial=start_step,
-        total=config.steps,
-        desc=config.method,
-        unit="step",
-        disable=not (progress and launch.is_main),
-    )
-    batch_iterator = iter(loader)
-    for step in bar:
-        waited_from = time.perf_counter()
-        batch = next(batch_iterator)
-        arrived = time.perf_counter()
-        if step == start_step:
-            steady_from = arrived  # the first batch's wait is the workers' start-up, not their pace
-        else:
-            data_wait += arrived - waited_from
-        if "error" in batch:
-            raise batch["error"]
+    def train_step(
+        self,
+        net: torch.nn.Module,
+        step_loss: Callable[..., tuple[torch.Tensor, dict[str, float]]],
+        batch: Any,
+        step: int,
+    ) -> dict[str, float]:
+        """One optimiser step on ``batch``; the batch's loss and statistics, averaged over processes."""
+        config, launch, device, scaler = self.config, self.launch, self.device, self.scaler
         try:
-            with torch.autocast(device.type, dtype=amp_dtype) if amp_dtype is not None else nullcontext():
+            with torch.autocast(device.type, dtype=self.amp_dtype) if self.amp_dtype is not None else nullcontext():
                 loss, stats = step_loss(net, batch, device)
-            optimizer.zero_grad(set_to_none=True)
+            self.optimizer.zero_grad(set_to_none=True)
             (loss if scaler is None else scaler.scale(loss)).backward()
             # The loss of the whole batch (mean over processes) decides, on every process alike.
             logged = _batch_means(loss, stats, launch.world_size)
@@ -728,11 +717,11 @@ def _train(
                     )
                 )
             if scaler is None:
-                optimizer.step()
+                self.optimizer.step()
             else:
-                scaler.step(optimizer)
+                scaler.step(self.optimizer)
                 scaler.update()
-            scheduler.step()
+            self.scheduler.step()
         except RuntimeError as exc:
             if launch.world_size == 1:
                 raise
@@ -741,41 +730,97 @@ def _train(
             detail = detail.split(". ")[0]
             raise DonGymError(
                 f"rank {launch.rank}: step {step + 1} failed ({detail}); another process has probably stopped. "
-                f"The last checkpoint in {out} is intact: rerun with --resume"
+                f"The last checkpoint in {self.out} is intact: rerun with --resume"
             ) from None
-        images_seen += images_per_step
-        rate = images_seen / (time.perf_counter() - start_time)
-        rows.append(
+        return logged
+
+    def log(self, step: int, logged: dict[str, float], images: int, bar: tqdm) -> None:
+        """A finished step's row of the loss table and the progress bar's figures."""
+        self.images_seen += images
+        rate = self.images_seen / (time.perf_counter() - self.start_time)
+        self.rows.append(
             {
                 "step": step + 1,
                 "loss": f"{logged['loss']:.6g}",
-                "lr": f"{scheduler.get_last_lr()[0]:.3g}",
+                "lr": f"{self.scheduler.get_last_lr()[0]:.3g}",
                 **{k: f"{v:.6g}" for k, v in logged.items() if k != "loss"},
             }
         )
         bar.set_postfix(loss=f"{logged['loss']:.4f}", img_s=f"{rate:.1f}")
+
+    def result(self, seconds: float, steady_from: float, data_wait: float) -> TrainResult:
+        """What the session reports: the final loss (mean of the last 5% of steps), the run's time and pace (over
+        every session, when known) and the share of its steady time spent waiting for data."""
+        config, rows = self.config, self.rows
+        final_loss = float(np.mean([float(r["loss"]) for r in rows[-max(1, len(rows) // 20) :]]))
+        steady_seconds = self.start_time + seconds - steady_from if config.steps > self.start_step + 1 else 0.0
+        wait_fraction = data_wait / steady_seconds if steady_seconds > 0 else None
+        final = self.out / FINAL_MODEL
+        if self.earlier_seconds is None or self.earlier_images is None:
+            return TrainResult(final, final_loss, config.steps, None, None, wait_fraction)
+        total_seconds = self.earlier_seconds + seconds
+        total_images = self.earlier_images + self.images_seen
+        return TrainResult(
+            final, final_loss, config.steps, total_seconds, total_images / max(total_seconds, 1e-9), wait_fraction
+        )
+
+
+def _train(
+    config: TrainConfig,
+    resume: bool,
+    progress: bool,
+    launch: LaunchEnvironment,
+    device: torch.device,
+    amp_dtype: torch.dtype | None,
+    source: SupervisedFrames | CorrespondencePairs,
+    held: list[DirectoryLock],
+) -> TrainResult:
+    session = _TrainingRun(config, launch, device, amp_dtype, source)
+    run = broadcast_from_main(session.open_run_dir(resume, held) if launch.is_main else None)
+    if run.error is not None:
+        raise same_on_every_process(DonGymError(run.error))
+    session.restore(run)
+    del run
+    net = session.network()
+    batches = StepBatches(
+        source, config.steps, config.batch_size, config.seed, AugmentConfig(**config.augment), launch.rank,
+        launch.world_size,
+    )  # fmt: skip
+    loader = step_loader(batches, session.start_step, config.workers, pin_memory=device.type == "cuda")
+    images_per_step = config.batch_size * (1 if session.supervised else 2)
+    step_loss = _supervised_step_loss if session.supervised else _contrastive_step_loss(config)
+    net.train()
+    data_wait = 0.0
+    session.start_time = steady_from = time.perf_counter()
+    bar = tqdm(
+        range(session.start_step, config.steps),
+        initial=session.start_step,
+        total=config.steps,
+        desc=config.method,
+        unit="step",
+        disable=not (progress and launch.is_main),
+    )
+    batch_iterator = iter(loader)
+    for step in bar:
+        waited_from = time.perf_counter()
+        batch = next(batch_iterator)
+        arrived = time.perf_counter()
+        if step == session.start_step:
+            steady_from = arrived  # the first batch's wait is the workers' start-up, not their pace
+        else:
+            data_wait += arrived - waited_from
+        if "error" in batch:
+            raise batch["error"]
+        logged = session.train_step(net, step_loss, batch, step)
+        session.log(step, logged, images_per_step, bar)
         done = step + 1
         if done % config.checkpoint_every == 0 or done == config.steps:
-            save(done, out / "checkpoints" / f"step_{done:06d}.safetensors")
+            session.save(done, session.out / "checkpoints" / f"step_{done:06d}.safetensors")
     bar.close()
     del batch_iterator  # stops the loader's worker processes
-    seconds = session_seconds()
-    save(config.steps, out / FINAL_MODEL, seconds)  # the state records the time this run reports
-    final_loss = float(np.mean([float(r["loss"]) for r in rows[-max(1, len(rows) // 20) :]]))
-    steady_seconds = start_time + seconds - steady_from if config.steps > start_step + 1 else 0.0
-    wait_fraction = data_wait / steady_seconds if steady_seconds > 0 else None
-    if earlier_seconds is None or earlier_images is None:
-        return TrainResult(out / FINAL_MODEL, final_loss, config.steps, None, None, wait_fraction)
-    total_seconds = earlier_seconds + seconds
-    total_images = earlier_images + images_seen
-    return TrainResult(
-        out / FINAL_MODEL,
-        final_loss,
-        config.steps,
-        total_seconds,
-        total_images / max(total_seconds, 1e-9),
-        wait_fraction,
-    )
+    seconds = session.session_seconds()
+    session.save(config.steps, session.out / FINAL_MODEL, seconds)  # the state records the time this run reports
+    return session.result(seconds, steady_from, data_wait)
 
 
 def _to_device(tensor: torch.Tensor, device: torch.device) -> torch.Tensor:
