@@ -233,3 +233,13 @@ def test_every_path_the_docs_name_imports() -> None:
         else:
             problems.append(f"{dotted}: no such module")
     assert not problems, "\n".join(problems)
+
+
+def test_every_source_file_the_docs_name_exists() -> None:
+    texts = [REPO / "README.md", REPO / "CONTRIBUTING.md", *sorted((REPO / "docs").glob("*.md"))]
+    named = set()
+    for path in texts:
+        named |= set(re.findall(r"\b((?:don_gym|wrappers|agents|benchmarks|tests)/[\w/]+\.py)\b", path.read_text()))
+    assert len(named) > 5
+    missing = sorted(p for p in named if not (REPO / p).is_file())
+    assert not missing, f"named in the docs, but no such file: {missing}"
