@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from don_gym.sim.camera import RENDERERS
+
 
 def _size(text: str) -> tuple[int, int]:
     from don_gym.cli import parse_size
@@ -46,7 +48,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--frames", type=int, default=24, help="camera frames per scene")
     parser.add_argument("--size", type=_size, default=(320, 240), help="image size WIDTHxHEIGHT in pixels")
     parser.add_argument("--sensor", default="d435", help="depth sensor preset (ideal, d435, ...)")
-    parser.add_argument("--renderer", default="tiny", choices=["tiny", "egl"], help="PyBullet renderer for RGB")
+    parser.add_argument(
+        "--renderer",
+        default="tiny",
+        choices=list(RENDERERS),
+        help="renderer of the RGB images: tiny (TinyRenderer, default), egl (OpenGL), pbr (path-traced, the pbr extra)",
+    )
     parser.add_argument("--dim", type=int, default=3, help="descriptor dimension D")
     parser.add_argument("--no-symmetry", action="store_true", help="plain Laplacian Eigenmaps (no GISIF merging)")
     parser.add_argument("--no-fusion", action="store_true", help="skip TSDF depth fusion (supervised data only)")

@@ -396,7 +396,7 @@ def _check_renderer_in_use(in_use: str, wanted: str) -> None:
     if in_use != wanted:
         raise DatasetError(
             f"renderer={wanted!r} (--renderer) is unavailable on this machine (PyBullet would use {in_use!r}); "
-            "build on a machine with EGL or pass --renderer tiny"
+            "build where it is available (egl: an EGL driver) or pass --renderer tiny"
         )
 
 

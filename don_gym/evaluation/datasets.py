@@ -25,13 +25,17 @@ def build_evaluation_datasets(
     backgrounds: str = "classic",
     lighting: str = "fixed",
     progress: bool = True,
+    renderer: str = "tiny",
 ) -> list[Path]:
     """The evaluation datasets of one part, one per seed of a split (``out_root/<split>_<part>_<seed>``): D435
     depth and no fused depth (evaluation reads the sensor and ideal depth only); built, or resumed where a
     run stopped. The benchmarks' one way to make the data they evaluate on. With ``parts`` (``{part: count}``;
     ``object_name`` None), piles of a bin instead (``out_root/<split>_pile_<seed>``, docs/bin.md);
-    ``backgrounds`` and ``lighting`` as in :class:`DatasetConfig`, to match the variety a network trained on."""
+    ``backgrounds`` and ``lighting`` as in :class:`DatasetConfig`, to match the variety a network trained on.
+    ``renderer`` other than "tiny": the same scenes (same seeds, poses, depth) with that renderer's RGB, in
+    ``out_root/<split>_<renderer>_...`` (the physically rendered test split: ``renderer="pbr"``)."""
     datasets = []
+    prefix = split if renderer == "tiny" else f"{split}_{renderer}"
     for seed in seeds:
         config = DatasetConfig(
             **({} if object_name is None else {"object": object_name}),
@@ -43,11 +47,12 @@ def build_evaluation_datasets(
             fuse_depth=False,
             backgrounds=backgrounds,
             lighting=lighting,
+            renderer=renderer,
         )
         if parts is None:
-            datasets.append(Path(out_root) / f"{split}_{object_name}_{seed}")
+            datasets.append(Path(out_root) / f"{prefix}_{object_name}_{seed}")
             build_dataset(config, datasets[-1], workers=workers, progress=progress)
         else:
-            datasets.append(Path(out_root) / f"{split}_pile_{seed}")
+            datasets.append(Path(out_root) / f"{prefix}_pile_{seed}")
             build_bin_dataset(config, parts, datasets[-1], workers=workers, progress=progress)
     return datasets

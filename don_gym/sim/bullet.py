@@ -20,6 +20,7 @@ from pybullet_utils.bullet_client import BulletClient
 
 from don_gym.errors import DonGymError
 from don_gym.sim.camera import check_renderer
+from don_gym.sim.pbr import PbrRenderer, Surface, VisualAssets
 
 #: Gravity in m/s^2 along world -z.
 GRAVITY_M_S2 = 9.81
@@ -74,11 +75,51 @@ class _Client(BulletClient):
     makes a few dozen calls per control step.
     """
 
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        #: What PyBullet does not report back about the visuals (texture files, meshes made from arrays,
+        #: surfaces), recorded by the methods below for the "pbr" renderer.
+        self.assets = VisualAssets()
+        #: The path tracer (:class:`~don_gym.sim.pbr.PbrRenderer`) when the world renders with "pbr".
+        self.pbr: PbrRenderer | None = None
+
     def __getattr__(self, name: str):
         attribute = super().__getattr__(name)
         if name != "disconnect" and callable(attribute):
             self.__dict__[name] = attribute
         return attribute
+
+    # PyBullet keeps textures and array meshes to itself; these record them on their way in.
+    def loadTexture(self, path: str, *args, **kwargs) -> int:  # noqa: N802 - PyBullet's name
+        texture_id = super().__getattr__("loadTexture")(path, *args, **kwargs)
+        self.assets.texture_files[int(texture_id)] = str(path)
+        return texture_id
+
+    def changeVisualShape(self, body_id: int, link: int, *args, **kwargs) -> None:  # noqa: N802
+        super().__getattr__("changeVisualShape")(body_id, link, *args, **kwargs)
+        texture_id = kwargs.get("textureUniqueId")
+        if texture_id is not None:
+            self.assets.textures.pop((int(body_id), int(link)), None)
+            if int(texture_id) in self.assets.texture_files:
+                self.assets.textures[(int(body_id), int(link))] = self.assets.texture_files[int(texture_id)]
+
+    def createVisualShape(self, *args, **kwargs) -> int:  # noqa: N802
+        shape_index = super().__getattr__("createVisualShape")(*args, **kwargs)
+        if kwargs.get("vertices") is not None and kwargs.get("indices") is not None:
+            uvs = kwargs.get("uvs")
+            self.assets.shape_meshes[int(shape_index)] = (
+                np.asarray(kwargs["vertices"], dtype=np.float64).reshape(-1, 3),
+                np.asarray(kwargs["indices"], dtype=np.int64).reshape(-1, 3),
+                None if uvs is None else np.asarray(uvs, dtype=np.float64).reshape(-1, 2),
+            )
+        return shape_index
+
+    def createMultiBody(self, *args, **kwargs) -> int:  # noqa: N802
+        body_id = super().__getattr__("createMultiBody")(*args, **kwargs)
+        shape_index = kwargs.get("baseVisualShapeIndex")
+        if shape_index is not None and int(shape_index) in self.assets.shape_meshes:
+            self.assets.body_meshes[int(body_id)] = self.assets.shape_meshes[int(shape_index)]
+        return body_id
 
 
 class Bullet:
@@ -92,8 +133,9 @@ class Bullet:
             this (PyBullet's default 1e-7 makes it run all iterations nearly always). At 1e-5
             it stops early, and resting and held parts behave the same (same outcomes,
             placement within 0.5 mm in the oracle test).
-        renderer: ``"tiny"`` or ``"egl"``; ``"egl"`` loads the eglRenderer plugin on this
-            client and falls back to ``"tiny"`` with a warning when that fails. The renderer
+        renderer: ``"tiny"``, ``"egl"`` or ``"pbr"``; ``"egl"`` loads the eglRenderer plugin on this
+            client and falls back to ``"tiny"`` with a warning when that fails; ``"pbr"`` gives the client a
+            :class:`~don_gym.sim.pbr.PbrRenderer` (raises a one-line error when Mitsuba is not installed). The renderer
             actually in use is :attr:`renderer`; :attr:`opengl_renderer` names what EGL renders with.
     """
 
@@ -128,6 +170,13 @@ class Bullet:
         self.opengl_renderer: str | None = None
         if renderer == "egl":
             self.renderer = self._load_egl()
+        elif renderer == "pbr":
+            self.client.pbr = PbrRenderer(self.client.assets)
+            self.renderer = "pbr"
+
+    def set_surface(self, body_id: int, surface: Surface) -> None:
+        """How body ``body_id`` scatters light in "pbr" renders (others: a rough dielectric)."""
+        self.client.assets.surfaces[int(body_id)] = surface
 
     def _load_egl(self) -> str:
         loader = pkgutil.get_loader("eglRenderer")

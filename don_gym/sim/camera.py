@@ -22,8 +22,12 @@ from don_gym.geometry import CameraIntrinsics, invert_transform, make_transform
 #: because its pixels do not depend on the machine's OpenGL stack. "egl": the ``eglRenderer``
 #: plugin (``ER_BULLET_HARDWARE_OPENGL``) loaded per client by :class:`don_gym.sim.bullet.Bullet`,
 #: on Mesa's software OpenGL (llvmpipe) without a GPU. Their pixels differ (shading, edge
-#: anti-aliasing), so a dataset and a model name the renderer they used.
-RENDERERS = ("tiny", "egl")
+#: anti-aliasing), so a dataset and a model name the renderer they used. "pbr": path-traced RGB
+#: (:mod:`don_gym.sim.pbr`, Mitsuba 3, the ``pbr`` extra) of the same scene: metal that looks like metal,
+#: an environment's reflections, soft shadows, a camera's exposure and noise; its depth and segmentation
+#: are TinyRenderer's, so masks and targets align to the pixel. Needs a :class:`~don_gym.sim.bullet.Bullet`
+#: made with ``renderer="pbr"``.
+RENDERERS = ("tiny", "egl", "pbr")
 
 #: Lower 24 bits of a PyBullet segmentation value hold the body id, the upper bits link index + 1.
 _BODY_ID_MASK = (1 << 24) - 1
@@ -33,7 +37,7 @@ _T_CV_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 # Offset (u, v) in pixels added to the principal point in the OpenGL projection, per
 # renderer; see projection_matrix_gl.
-_PRINCIPAL_POINT_OFFSET_PX = {"tiny": (0.0, 1.0), "egl": (0.5, 0.5)}
+_PRINCIPAL_POINT_OFFSET_PX = {"tiny": (0.0, 1.0), "egl": (0.5, 0.5), "pbr": (0.0, 1.0)}
 
 # Fixed light so that renders do not depend on PyBullet's defaults changing between versions.
 _LIGHT_DIRECTION = (0.4, -0.3, 1.0)
@@ -182,7 +186,8 @@ def render_camera(
         intrinsics: pinhole intrinsics; the image is ``intrinsics.width`` x ``intrinsics.height``.
         T_world_camera: (4, 4) OpenCV camera pose (x right, y down, z forward) in the world.
         near_m, far_m: clip planes in metres; surfaces beyond ``far_m`` read as depth 0.
-        renderer: ``"tiny"`` or ``"egl"``.
+        renderer: ``"tiny"``, ``"egl"`` or ``"pbr"`` (``client`` made by a ``Bullet(renderer="pbr")``:
+            TinyRenderer's depth and segmentation, path-traced RGB).
         lighting: the light (:class:`Lighting`); None, the fixed default light.
 
     Returns:
@@ -192,6 +197,9 @@ def render_camera(
         ``body_id + ((link_index + 1) << 24)`` (see :func:`decode_segmentation`).
     """
     check_renderer(renderer)
+    pbr = getattr(client, "pbr", None) if renderer == "pbr" else None
+    if renderer == "pbr" and pbr is None:
+        raise DonGymError("renderer='pbr' needs a client made by don_gym.sim.bullet.Bullet(renderer='pbr')")
     W, H = intrinsics.width, intrinsics.height
     _, _, rgba, zbuffer, seg = client.getCameraImage(
         W,
@@ -206,7 +214,10 @@ def render_camera(
         flags=p.ER_SEGMENTATION_MASK_OBJECT_AND_LINKINDEX,
         renderer=p.ER_BULLET_HARDWARE_OPENGL if renderer == "egl" else p.ER_TINY_RENDERER,
     )
-    rgb = np.asarray(rgba, dtype=np.uint8).reshape(H, W, 4)[:, :, :3].copy()
+    if pbr is not None:
+        rgb = pbr.render(client, intrinsics, T_world_camera, lighting)
+    else:
+        rgb = np.asarray(rgba, dtype=np.uint8).reshape(H, W, 4)[:, :, :3].copy()
     depth_m = depth_from_zbuffer(np.asarray(zbuffer, dtype=np.float32).reshape(H, W), near_m, far_m)
     segmentation = np.asarray(seg, dtype=np.int32).reshape(H, W)
     return rgb, depth_m, segmentation

@@ -20,6 +20,7 @@ from don_gym.geometry import invert_transform, make_transform, pose_from_transfo
 from don_gym.io import atomic_path
 from don_gym.objects import ObjectModel
 from don_gym.sim.bullet import Bullet, silence_c_stdout
+from don_gym.sim.pbr import Surface
 
 #: V-HACD parameters; part of the cache key.
 VHACD_PARAMS = {"resolution": 200_000, "concavity": 0.0025, "maxNumVerticesPerCH": 64, "minVolumePerCH": 1e-5}
@@ -265,6 +266,7 @@ class PartBody:
             basePosition=[0.0, 0.0, 1.0],
         )
         sim.add_body(name, body_id)
+        sim.set_surface(body_id, Surface(metallic=model.material.metallic, roughness=model.material.roughness))
         client.changeDynamics(
             body_id,
             -1,
