@@ -70,8 +70,13 @@ class Material:
 # Steel's base colour is its reflectance at normal incidence (about 0.56-0.58 for iron, a touch bluer);
 # roughness 0.3: a turned, not polished, surface.
 STEEL = Material(
-    "steel", STEEL_DENSITY_KG_M3, lateral_friction=0.8, specular=0.9, rgba=(0.72, 0.73, 0.76, 1.0),
-    metallic=1.0, roughness=0.3,
+    "steel",
+    STEEL_DENSITY_KG_M3,
+    lateral_friction=0.8,
+    specular=0.9,
+    rgba=(0.72, 0.73, 0.76, 1.0),
+    metallic=1.0,
+    roughness=0.3,
 )
 #: ABS-like plastic, for user meshes that say so.
 PLASTIC = Material(
