@@ -25,7 +25,7 @@ import numpy as np
 import pybullet as p
 
 from don_gym.errors import DonGymError
-from don_gym.io import write_png
+from don_gym.io import write_png, write_text_atomic
 from don_gym.sim.bullet import Bullet
 from don_gym.sim.task import TABLE_BOUNDS_M, TABLE_TOP_Z_M
 
@@ -128,7 +128,9 @@ class Backdrop:
         self, name: str, bounds_xy: tuple[float, float, float, float], z: float, repeats: int, cells: int = 12
     ) -> int:
         """A textured horizontal rectangle, split into ``cells`` x ``cells`` squares because
-        TinyRenderer maps textures affinely per triangle (large triangles warp visibly)."""
+        TinyRenderer maps textures affinely per triangle (large triangles warp visibly). It goes through an
+        OBJ file: the EGL renderer draws only meshes it can read from a file (one given as arrays is skipped,
+        and the table would show bare)."""
         x0, x1, y0, y1 = bounds_xy
         t = np.linspace(0.0, 1.0, cells + 1)
         tu, tv = np.meshgrid(t, t, indexing="xy")
@@ -136,13 +138,13 @@ class Backdrop:
         uvs = (np.stack([tu, tv], axis=-1) * repeats).reshape(-1, 2)
         corner = (np.arange(cells)[None, :] + (cells + 1) * np.arange(cells)[:, None]).ravel()
         indices = np.stack([corner, corner + 1, corner + cells + 2, corner, corner + cells + 2, corner + cells + 1], 1)
-        visual = self.sim.client.createVisualShape(
-            p.GEOM_MESH,
-            vertices=vertices.tolist(),
-            indices=indices.ravel().tolist(),
-            uvs=uvs.tolist(),
-            normals=[[0.0, 0.0, 1.0]] * len(vertices),
-        )
+        path = Path(self._texture_dir.name) / f"{name}.obj"
+        lines = [f"v {x:.9g} {y:.9g} {zz:.9g}" for x, y, zz in vertices]
+        lines += [f"vt {u:.9g} {v:.9g}" for u, v in uvs]
+        lines.append("vn 0 0 1")
+        lines += ["f " + " ".join(f"{i + 1}/{i + 1}/1" for i in face) for face in indices.reshape(-1, 3)]
+        write_text_atomic(path, "\n".join(lines) + "\n")
+        visual = self.sim.client.createVisualShape(p.GEOM_MESH, fileName=str(path))
         return self.sim.add_body(name, self.sim.client.createMultiBody(baseMass=0.0, baseVisualShapeIndex=visual))
 
     def randomise(
@@ -158,7 +160,7 @@ class Backdrop:
             self._texture_count += 1
             path = Path(self._texture_dir.name) / f"{name}_{self._texture_count}.png"
             write_png(path, cv2.cvtColor(texture, cv2.COLOR_RGB2BGR))  # raises, not a silently missing texture
-            client.changeVisualShape(body_id, -1, rgbaColor=[1, 1, 1, 1], textureUniqueId=client.loadTexture(str(path)))
+            client.changeVisualShape(body_id, -1, rgbaColor=[1, 1, 1, 1], textureUniqueId=self.sim.load_texture(path))
             settings[f"{name}_texture_mean_rgb"] = texture.reshape(-1, 3).mean(axis=0).round(1)
             settings[f"{name}_texture_family"] = family
         if self.cradle_id is not None:

@@ -8,10 +8,12 @@ from __future__ import annotations
 import contextlib
 import os
 import pkgutil
+import shutil
 import sys
 import tempfile
 import warnings
 from collections.abc import Iterator, Sequence
+from pathlib import Path
 
 import numpy as np
 import pybullet as p
@@ -77,8 +79,8 @@ class _Client(BulletClient):
 
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
-        #: What PyBullet does not report back about the visuals (texture files, meshes made from arrays,
-        #: surfaces), recorded by the methods below for the "pbr" renderer.
+        #: What PyBullet does not report back about the visuals (textures, surfaces), recorded by the
+        #: methods below for the "pbr" renderer.
         self.assets = VisualAssets()
         #: The path tracer (:class:`~don_gym.sim.pbr.PbrRenderer`) when the world renders with "pbr".
         self.pbr: PbrRenderer | None = None
@@ -89,7 +91,7 @@ class _Client(BulletClient):
             self.__dict__[name] = attribute
         return attribute
 
-    # PyBullet keeps textures and array meshes to itself; these record them on their way in.
+    # PyBullet keeps textures to itself; these record them on their way in.
     def loadTexture(self, path: str, *args, **kwargs) -> int:  # noqa: N802 - PyBullet's name
         texture_id = super().__getattr__("loadTexture")(path, *args, **kwargs)
         self.assets.texture_files[int(texture_id)] = str(path)
@@ -100,26 +102,8 @@ class _Client(BulletClient):
         texture_id = kwargs.get("textureUniqueId")
         if texture_id is not None:
             self.assets.textures.pop((int(body_id), int(link)), None)
-            if int(texture_id) in self.assets.texture_files:
-                self.assets.textures[(int(body_id), int(link))] = self.assets.texture_files[int(texture_id)]
-
-    def createVisualShape(self, *args, **kwargs) -> int:  # noqa: N802
-        shape_index = super().__getattr__("createVisualShape")(*args, **kwargs)
-        if kwargs.get("vertices") is not None and kwargs.get("indices") is not None:
-            uvs = kwargs.get("uvs")
-            self.assets.shape_meshes[int(shape_index)] = (
-                np.asarray(kwargs["vertices"], dtype=np.float64).reshape(-1, 3),
-                np.asarray(kwargs["indices"], dtype=np.int64).reshape(-1, 3),
-                None if uvs is None else np.asarray(uvs, dtype=np.float64).reshape(-1, 2),
-            )
-        return shape_index
-
-    def createMultiBody(self, *args, **kwargs) -> int:  # noqa: N802
-        body_id = super().__getattr__("createMultiBody")(*args, **kwargs)
-        shape_index = kwargs.get("baseVisualShapeIndex")
-        if shape_index is not None and int(shape_index) in self.assets.shape_meshes:
-            self.assets.body_meshes[int(body_id)] = self.assets.shape_meshes[int(shape_index)]
-        return body_id
+            if int(texture_id) >= 0:
+                self.assets.textures[(int(body_id), int(link))] = int(texture_id)
 
 
 class Bullet:
@@ -173,6 +157,21 @@ class Bullet:
         elif renderer == "pbr":
             self.client.pbr = PbrRenderer(self.client.assets)
             self.renderer = "pbr"
+
+    def load_texture(self, path: str | os.PathLike) -> int:
+        """Load an image file as a texture; its id for ``changeVisualShape(textureUniqueId=...)``.
+
+        The EGL plugin numbers textures one ahead of the physics server once the Panda has brought textures
+        of its own, so the server's id of a texture loaded later shows the texture before it in EGL images
+        (the backdrops showed the robot's). Loading the file twice, under two names, and using the second id
+        shows the image under either numbering."""
+        if self.renderer != "egl":
+            return int(self.client.loadTexture(str(path)))
+        path = Path(path)
+        twin = path.with_name(f"{path.stem}.twin{path.suffix}")
+        shutil.copyfile(path, twin)
+        self.client.loadTexture(str(path))
+        return int(self.client.loadTexture(str(twin)))
 
     def set_surface(self, body_id: int, surface: Surface) -> None:
         """How body ``body_id`` scatters light in "pbr" renders (others: a rough dielectric)."""

@@ -106,15 +106,12 @@ class PbrSettings:
 @dataclass
 class VisualAssets:
     """What PyBullet does not report back about a world's visuals, recorded as they are made (by the client of
-    :class:`don_gym.sim.bullet.Bullet`): texture files, meshes given as arrays, and surfaces."""
+    :class:`don_gym.sim.bullet.Bullet`): textures and surfaces."""
 
+    #: texture id -> the image file it was loaded from.
     texture_files: dict[int, str] = field(default_factory=dict)
-    #: (body id, link index) -> texture file shown there.
-    textures: dict[tuple[int, int], str] = field(default_factory=dict)
-    #: visual shape index -> (vertices (N, 3) m, faces (M, 3), uvs (N, 2) or None), of meshes given as arrays.
-    shape_meshes: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = field(default_factory=dict)
-    #: body id -> the arrays of its base's visual, when it was made from arrays.
-    body_meshes: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = field(default_factory=dict)
+    #: (body id, link index) -> texture id shown there.
+    textures: dict[tuple[int, int], int] = field(default_factory=dict)
     surfaces: dict[int, Surface] = field(default_factory=dict)
 
 
@@ -341,7 +338,8 @@ def scene_visuals(client: Any, assets: VisualAssets, cache: Any | None = None) -
     """Every visible shape of the world behind ``client`` (alpha > 0), in world poses.
 
     PyBullet reports a shape's frame relative to its link's inertial frame (base: the body's base frame);
-    mesh files are read with trimesh, meshes made from arrays come from ``assets``."""
+    mesh files are read with trimesh; textures come from ``assets`` (meshes given to PyBullet as arrays
+    are not drawn: PyBullet does not report them back, and the EGL renderer skips them too)."""
     cache = cache if cache is not None else _MeshCache()
     shapes: list[VisualShape] = []
     for body_index in range(client.getNumBodies()):
@@ -352,12 +350,8 @@ def scene_visuals(client: Any, assets: VisualAssets, cache: Any | None = None) -
             rgba = np.asarray(data[7], dtype=np.float64)
             if rgba[3] <= 0.0:
                 continue
-            if geometry_type == p.GEOM_MESH and not filename and link < 0 and body_id in assets.body_meshes:
-                vertices, faces, uvs = assets.body_meshes[body_id]
-                key: tuple = ("arrays", body_id, id(vertices))
-                entry = cache.get(key, lambda v=vertices, f=faces, u=uvs: (v, f, u, False, None))
-            elif geometry_type == p.GEOM_MESH and filename:
-                key = ("file", filename, tuple(np.round(dimensions, 9)))
+            if geometry_type == p.GEOM_MESH and filename:
+                key: tuple = ("file", filename, tuple(np.round(dimensions, 9)))
 
                 def load(path=filename, scale=dimensions):
                     vertices, faces, uvs, colour = _file_mesh(path, scale)
@@ -377,7 +371,8 @@ def scene_visuals(client: Any, assets: VisualAssets, cache: Any | None = None) -
             if len(entry.faces) == 0:
                 continue
             T_link_shape = _pose(data[5], data[6])
-            texture = assets.textures.get((body_id, link))
+            texture_id = assets.textures.get((body_id, link))
+            texture = None if texture_id is None else assets.texture_files.get(texture_id)
             # A mesh file's own material colour shows through PyBullet's default white.
             rgb = rgba[:3] if entry.colour is None else rgba[:3] * entry.colour
             shapes.append(
@@ -432,6 +427,8 @@ class PbrRenderer:
     # ------------------------------------------------------------- pieces
     def _bitmap(self, path: str) -> Any:
         if path not in self._bitmaps:
+            if len(self._bitmaps) > 16:  # a recorder's backdrops bring new textures at every scene
+                self._bitmaps.clear()
             self._bitmaps[path] = self.mi.load_dict({"type": "bitmap", "filename": str(path)})
         return self._bitmaps[path]
 
