@@ -32,9 +32,11 @@ from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics, transform_from_pose, transform_points
 
 __all__ = [
+    "DENOISERS",
     "INSTALL_HINT",
     "PbrRenderer",
     "PbrSettings",
+    "denoise",
     "Surface",
     "VisualAssets",
     "VisualShape",
@@ -47,7 +49,8 @@ __all__ = [
 ]
 
 INSTALL_HINT = (
-    "renderer='pbr' needs Mitsuba 3: install it with pip install -e \".[pbr]\" (or pip install 'don-gym[pbr]')"
+    "renderer='pbr' needs Mitsuba 3 and Open Image Denoise: "
+    "install them with pip install -e \".[pbr]\" (or pip install 'don-gym[pbr]')"
 )
 
 #: The lamp: a disc of this radius (m), this far (m) from the workspace's centre (world, m) towards the light.
@@ -76,6 +79,9 @@ class Surface:
 DEFAULT_SURFACE = Surface()
 
 
+DENOISERS = ("oidn", "none")
+
+
 @dataclass(frozen=True)
 class PbrSettings:
     """The path tracer's and the camera's settings.
@@ -83,7 +89,8 @@ class PbrSettings:
     Attributes:
         samples_per_pixel: Monte Carlo samples per pixel (the noise falls as 1/sqrt of it).
         max_depth: longest light path in bounces (2: direct light only; more: interreflections).
-        denoise: an edge-preserving filter of the radiance before the camera's noise (OpenCV's bilateral).
+        denoiser: "oidn" (Intel Open Image Denoise, guided by albedo and normals) or "none"; the radiance
+            is denoised before the camera adds its own noise.
         exposure_key: auto exposure maps the frame's log-average luminance to this grey level (linear).
         full_well_electrons: the sensor's full-well capacity; photon shot noise follows from it.
         read_noise: the sensor's read noise, a fraction of full scale (linear).
@@ -91,7 +98,7 @@ class PbrSettings:
 
     samples_per_pixel: int = 16
     max_depth: int = 5
-    denoise: bool = True
+    denoiser: str = "oidn"
     exposure_key: float = 0.18
     full_well_electrons: float = 6000.0
     read_noise: float = 0.002
@@ -101,6 +108,8 @@ class PbrSettings:
             raise DonGymError(f"samples_per_pixel={self.samples_per_pixel!r}: expected an integer in 1..4096")
         if not (isinstance(self.max_depth, (int, np.integer)) and 2 <= self.max_depth <= 32):
             raise DonGymError(f"max_depth={self.max_depth!r}: expected an integer in 2..32")
+        if self.denoiser not in DENOISERS:
+            raise DonGymError(f"denoiser={self.denoiser!r} is unknown; expected one of {list(DENOISERS)}")
 
 
 @dataclass
@@ -145,8 +154,8 @@ class VisualShape:
 
 
 def mitsuba_available() -> bool:
-    """Whether Mitsuba 3 is installed (without importing it)."""
-    return importlib.util.find_spec("mitsuba") is not None
+    """Whether Mitsuba 3 and the denoiser are installed (without importing them)."""
+    return importlib.util.find_spec("mitsuba") is not None and importlib.util.find_spec("pyoidn") is not None
 
 
 def _import_mitsuba() -> tuple[Any, str]:
@@ -189,8 +198,10 @@ def fov_and_principal_point(intrinsics: CameraIntrinsics) -> tuple[float, float,
         raise DonGymError(f"renderer='pbr' needs square pixels, got fx={intrinsics.fx} and fy={intrinsics.fy}")
     W, H = float(intrinsics.width), float(intrinsics.height)
     fov_deg = float(np.degrees(2.0 * np.arctan(W / (2.0 * intrinsics.fx))))
-    offset_x = ((intrinsics.cx + 0.5) - W / 2.0) / W
-    offset_y = ((intrinsics.cy + 0.5) - H / 2.0) / H
+    # Mitsuba moves the image's content the other way than the offset's sign reads (checked against the
+    # ray cast: tests/test_pbr.py, silhouette IoU).
+    offset_x = -((intrinsics.cx + 0.5) - W / 2.0) / W
+    offset_y = -((intrinsics.cy + 0.5) - H / 2.0) / H
     return fov_deg, offset_x, offset_y
 
 
@@ -205,9 +216,9 @@ def environment_map(index: int, height_px: int = 128) -> np.ndarray:
     """A procedural workshop environment: ``(height_px, 2 * height_px, 3)`` float32 linear radiance,
     equirectangular (row 0 straight up, column 0 azimuth 0, Mitsuba's ``envmap`` layout).
 
-    Index 0 is the fixed one (an even grey room with two ceiling windows); other indices draw a room from
-    ``default_rng(index)``: the sky's tint and brightness, walls and shelves of random colours around the
-    horizon, a darker floor, and 1-4 bright windows or light panels whose reflections a metal part shows.
+    Each index draws a room from ``default_rng(index)`` (index 0: the fixed lighting's): the ceiling's tint
+    and brightness, dark and light walls and shelves around the horizon, a darker floor, and 2-5 bright
+    windows or light panels whose reflections a metal part shows.
     """
     height, width = int(height_px), 2 * int(height_px)
     rng = np.random.default_rng(int(index))
@@ -215,29 +226,23 @@ def environment_map(index: int, height_px: int = 128) -> np.ndarray:
     phi = (np.arange(width) + 0.5) / width * 2.0 * np.pi
     elevation = (np.pi / 2 - theta)[:, None] * np.ones((1, width))
     azimuth = np.ones((height, 1)) * phi[None, :]
-    fixed = int(index) == 0
-    ceiling = np.array([0.9, 0.9, 0.92]) if fixed else rng.uniform(0.5, 1.2) * rng.uniform(0.8, 1.0, 3)
-    floor = np.array([0.25, 0.24, 0.22]) if fixed else rng.uniform(0.05, 0.35) * rng.uniform(0.7, 1.0, 3)
+    ceiling = rng.uniform(0.3, 0.8) * rng.uniform(0.85, 1.0, 3)
+    floor = rng.uniform(0.03, 0.15) * rng.uniform(0.8, 1.0, 3)
     blend = np.clip(0.5 + elevation / 0.6, 0.0, 1.0)[..., None]
     image = floor * (1 - blend) + ceiling * blend
-    if not fixed:
-        # Walls and shelves: smooth coloured blocks around the horizon, as the surroundings a metal part mirrors.
-        walls = _smooth_field(rng, (height, width), int(rng.integers(3, 9)))
-        band = np.exp(-(((elevation - rng.uniform(-0.1, 0.3)) / rng.uniform(0.25, 0.6)) ** 2))[..., None]
-        colour_a, colour_b = rng.uniform(0.05, 0.8, 3), rng.uniform(0.05, 0.8, 3)
-        wall_colour = colour_a * walls[..., None] + colour_b * (1 - walls[..., None])
-        image = image * (1 - 0.8 * band) + wall_colour * 0.8 * band
-    windows = 2 if fixed else int(rng.integers(1, 5))
-    for window in range(windows):
-        if fixed:
-            centre_az, centre_el, half_az, half_el, strength = np.pi * (0.5 + window), 1.0, 0.35, 0.2, 6.0
-        else:
-            centre_az, centre_el = rng.uniform(0, 2 * np.pi), rng.uniform(0.2, 1.4)
-            half_az, half_el, strength = rng.uniform(0.1, 0.5), rng.uniform(0.05, 0.3), rng.uniform(3.0, 15.0)
+    # Walls and shelves: smooth blocks of two colours around the horizon, dark and light, the surroundings
+    # whose contrast a metal part mirrors (an evenly lit room makes steel look like grey plastic).
+    walls = _smooth_field(rng, (height, width), int(rng.integers(3, 9)))
+    band = np.exp(-(((elevation - rng.uniform(-0.1, 0.3)) / rng.uniform(0.25, 0.6)) ** 2))[..., None]
+    colour_a, colour_b = rng.uniform(0.01, 0.1, 3), rng.uniform(0.2, 0.6, 3)
+    wall_colour = colour_a * walls[..., None] + colour_b * (1 - walls[..., None])
+    image = image * (1 - 0.9 * band) + wall_colour * 0.9 * band
+    for _ in range(int(rng.integers(2, 6))):
+        centre_az, centre_el = rng.uniform(0, 2 * np.pi), rng.uniform(0.2, 1.4)
+        half_az, half_el, strength = rng.uniform(0.1, 0.5), rng.uniform(0.05, 0.3), rng.uniform(8.0, 30.0)
         d_az = np.angle(np.exp(1j * (azimuth - centre_az)))
         inside = (np.abs(d_az) < half_az) & (np.abs(elevation - centre_el) < half_el)
-        tint = np.ones(3) if fixed else rng.uniform(0.85, 1.0, 3)
-        image[inside] = strength * tint
+        image[inside] = strength * rng.uniform(0.85, 1.0, 3)
     return image.astype(np.float32)
 
 
@@ -249,8 +254,10 @@ def expose(radiance_rgb: np.ndarray, settings: PbrSettings, rng: np.random.Gener
     luminance = radiance @ np.array([0.2126, 0.7152, 0.0722])
     log_average = float(np.exp(np.mean(np.log(np.maximum(luminance, 1e-4)))))
     linear = np.clip(radiance * (settings.exposure_key * float(gain) / log_average), 0.0, 1.0)
-    electrons = rng.poisson(linear * settings.full_well_electrons) / settings.full_well_electrons
-    noisy = np.clip(electrons + rng.normal(0.0, settings.read_noise, size=linear.shape), 0.0, 1.0)
+    # Shot noise as a Gaussian of the Poisson's variance: a fixed number of draws per pixel, so the noise of
+    # one pixel does not depend on the values of the others (as a Poisson sampler's rejection loop would).
+    sigma = np.sqrt(linear / settings.full_well_electrons + settings.read_noise**2)
+    noisy = np.clip(linear + sigma * rng.standard_normal(size=linear.shape), 0.0, 1.0)
     srgb = np.where(noisy <= 0.0031308, 12.92 * noisy, 1.055 * np.power(noisy, 1.0 / 2.4) - 0.055)
     return np.round(srgb * 255.0).astype(np.uint8)
 
@@ -355,7 +362,8 @@ def scene_visuals(client: Any, assets: VisualAssets, cache: Any | None = None) -
 
                 def load(path=filename, scale=dimensions):
                     vertices, faces, uvs, colour = _file_mesh(path, scale)
-                    return vertices, faces, uvs, True, colour
+                    # Textured meshes keep their texture coordinates (flat shading); the rest shade smooth.
+                    return vertices, faces, uvs, uvs is None, colour
 
                 entry = cache.get(key, load)
             else:
@@ -499,7 +507,7 @@ class PbrRenderer:
         }
 
     # ------------------------------------------------------------- render
-    def render_radiance(
+    def render_layers(
         self,
         client: Any,
         intrinsics: CameraIntrinsics,
@@ -507,14 +515,27 @@ class PbrRenderer:
         lighting: Any = None,
         samples_per_pixel: int | None = None,
         seed: int | None = None,
-    ) -> np.ndarray:
-        """(H, W, 3) float32 linear radiance of the world behind ``client`` seen from ``T_world_camera``."""
+        hide_environment: bool = False,
+    ) -> dict[str, np.ndarray]:
+        """Path-trace the world behind ``client`` seen from ``T_world_camera``; (H, W, C) float32 layers:
+        ``radiance`` (C=3, linear), ``coverage`` (C=1: the share of the pixel showing a surface rather than the
+        environment; meaningful with ``hide_environment``, which keeps the environment out of direct view,
+        else Mitsuba counts it as covered), ``albedo`` (C=3) and ``normal`` (C=3, world frame) at the first hit,
+        the denoiser's guides. ``seed`` None: from the camera pose and the light."""
         mi = self.mi
         fov_deg, offset_x, offset_y = fov_and_principal_point(intrinsics)
         spp = int(samples_per_pixel or self.settings.samples_per_pixel)
         scene: dict[str, Any] = {
             "type": "scene",
-            "integrator": {"type": "path", "max_depth": int(self.settings.max_depth)},
+            "integrator": {
+                "type": "aov",
+                "aovs": "albedo:albedo,normal:sh_normal",
+                "integrator": {
+                    "type": "path",
+                    "max_depth": int(self.settings.max_depth),
+                    "hide_emitters": bool(hide_environment),
+                },
+            },
             "sensor": {
                 "type": "perspective",
                 "fov": fov_deg,
@@ -528,8 +549,10 @@ class PbrRenderer:
                     "type": "hdrfilm",
                     "width": int(intrinsics.width),
                     "height": int(intrinsics.height),
-                    "rfilter": {"type": "gaussian"},
-                    "pixel_format": "rgb",
+                    # The box filter keeps each sample in its own pixel, which Mitsuba sums in a fixed order:
+                    # the same seed gives the same image (a Gaussian's splats add up in thread order).
+                    "rfilter": {"type": "box"},
+                    "pixel_format": "rgba",
                 },
                 "sampler": {"type": "independent", "sample_count": spp},
             },
@@ -539,30 +562,37 @@ class PbrRenderer:
             scene[f"shape_{index}"] = self._mesh(shape, index)
         if seed is None:
             seed = _frame_seed(T_world_camera, lighting)
-        loaded = mi.load_dict(scene)
-        radiance = np.asarray(mi.render(loaded, seed=int(seed) % (2**31)), dtype=np.float32)
-        return radiance[..., :3]
+        image = np.asarray(mi.render(mi.load_dict(scene), seed=int(seed) % (2**31)), dtype=np.float32)
+        return {
+            "radiance": image[..., 0:3],
+            "coverage": image[..., 3:4],
+            "albedo": image[..., 4:7],
+            "normal": image[..., 7:10],
+        }
 
     def render(
         self, client: Any, intrinsics: CameraIntrinsics, T_world_camera: np.ndarray, lighting: Any = None
     ) -> np.ndarray:
-        """(H, W, 3) uint8 sRGB: :meth:`render_radiance`, denoised if the settings say so, then :func:`expose`."""
+        """(H, W, 3) uint8 sRGB: :meth:`render_layers`, denoised as the settings say, then :func:`expose`."""
         seed = _frame_seed(T_world_camera, lighting)
-        radiance = self.render_radiance(client, intrinsics, T_world_camera, lighting, seed=seed)
-        if self.settings.denoise:
-            radiance = denoise(radiance)
+        layers = self.render_layers(client, intrinsics, T_world_camera, lighting, seed=seed)
+        radiance = denoise(layers, self.settings.denoiser)
         return expose(radiance, self.settings, np.random.default_rng(seed))
 
 
-def denoise(radiance_rgb: np.ndarray) -> np.ndarray:
-    """Edge-preserving smoothing of (H, W, 3) linear radiance: OpenCV's bilateral filter on the log image
-    (5 px, colour sigma 0.1 in log units), so that Monte Carlo noise goes and edges and highlights stay."""
-    import cv2
+def denoise(layers: dict[str, np.ndarray], denoiser: str = "oidn") -> np.ndarray:
+    """(H, W, 3) float32 linear radiance with the Monte Carlo noise of ``layers["radiance"]`` removed.
 
-    radiance = np.maximum(np.asarray(radiance_rgb, dtype=np.float32), 0.0)
-    log_image = np.log1p(radiance * 50.0).astype(np.float32)
-    smoothed = cv2.bilateralFilter(log_image, d=5, sigmaColor=0.1 * 4.0, sigmaSpace=1.5)
-    return (np.expm1(smoothed) / 50.0).astype(np.float32)
+    "oidn": Intel Open Image Denoise (its ray-tracing filter, HDR, guided by the first hit's albedo and
+    normal, deterministic on the CPU); "none": as rendered."""
+    radiance = np.ascontiguousarray(np.maximum(layers["radiance"], 0.0), dtype=np.float32)
+    if denoiser == "none":
+        return radiance
+    import pyoidn
+
+    albedo = np.ascontiguousarray(np.clip(layers["albedo"], 0.0, 1.0), dtype=np.float32)
+    normal = np.ascontiguousarray(np.clip(layers["normal"], -1.0, 1.0), dtype=np.float32)
+    return np.asarray(pyoidn.denoise(radiance, albedo, normal, hdr=True, quality="high"), dtype=np.float32)
 
 
 def _frame_seed(T_world_camera: np.ndarray, lighting: Any) -> int:
