@@ -331,6 +331,45 @@ def plot_match_gallery(
     return _save(fig, path)
 
 
+def plot_image_grid(
+    images: Mapping[str, Mapping[str, np.ndarray]],
+    path: str | Path,
+    *,
+    title: str | None = None,
+    panel_width_in: float = 2.6,
+    dpi: int = 100,
+) -> Path:
+    """A grid of images: one row per key of ``images`` (its name on the left), one column per key of each
+    row's mapping (the column names of the first row on top). Each image is (H, W, 3) uint8, or float in
+    [0, 1]; all of one shape."""
+    rows = list(images)
+    if not rows or not images[rows[0]]:
+        raise DonGymError("no images to show; expected {row: {column: image}}")
+    columns = list(images[rows[0]])
+    height, width = np.asarray(next(iter(images[rows[0]].values()))).shape[:2]
+    fig = _new_figure(
+        panel_width_in * len(columns) + 0.4,
+        panel_width_in * height / width * len(rows) + (0.5 if title else 0.3),
+        dpi=dpi,
+        layout="constrained",
+    )
+    axes = fig.subplots(len(rows), len(columns), squeeze=False)
+    for r, row in enumerate(rows):
+        for c, column in enumerate(columns):
+            ax = axes[r, c]
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if column in images[row]:
+                ax.imshow(images[row][column], interpolation="nearest")
+            if r == 0:
+                ax.set_title(column, fontsize=9)
+            if c == 0:
+                ax.set_ylabel(row, fontsize=9)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return _save(fig, path)
+
+
 # --- grasp outcomes (don_gym.evaluation.grasp_benchmark) --------------------------------------------------------
 
 

@@ -190,8 +190,10 @@ class PickPlaceEnv(gym.Env):
     - ``sensor``: depth-sensor preset (:mod:`~don_gym.sim.sensor`). "d435" (default): the paper's wrist
       camera, whose missing depth on the steel part makes self-supervised DON training hard; "ideal":
       exact depth and no calibration error.
-    - ``renderer``: "tiny" (TinyRenderer, default, identical pixels on every machine) or "egl" (falls
-      back to "tiny" with a warning).
+    - ``renderer``: "tiny" (TinyRenderer, default, identical pixels on every machine), "egl" (falls
+      back to "tiny" with a warning) or "pbr" (path-traced with Mitsuba 3: steel that looks like steel, far
+      slower; the ``pbr`` extra; docs/background.md, "Physically based rendering"). Depth and segmentation
+      are the same with every renderer.
     - ``reward_type``: "sparse" or "dense" (see Rewards).
     - ``background`` (:data:`BACKGROUNDS`): "plain" (default): the plain wooden-brown table and green cradle, pixel
       for pixel the scene the shipped networks' benchmarks were measured on. "random": what ``build-dataset`` records by

@@ -84,7 +84,7 @@ class SceneRecorder:
         model: the object.
         image_size: (width, height) of the wrist camera in pixels (D435-like intrinsics).
         sensor: depth-sensor preset name or model for ``depth_m``.
-        renderer: ``"tiny"`` or ``"egl"``.
+        renderer: ``"tiny"``, ``"egl"`` or ``"pbr"`` (:data:`~don_gym.sim.camera.RENDERERS`).
         backgrounds: the set of backdrop texture families (:data:`~don_gym.sim.backdrop.BACKDROP_SETS`):
             ``"classic"`` (the three above), ``"wide"`` (nine families) or ``"mixed"`` (half classic, half wide).
         distractors: coloured primitives placed on the table around the object per scene
