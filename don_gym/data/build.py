@@ -52,6 +52,7 @@ from don_gym.errors import DatasetError, DonGymError, SeveralPiecesError
 from don_gym.geometry import invert_transform
 from don_gym.io import LOCK_FILE
 from don_gym.objects import ObjectModel, load_object
+from don_gym.processes import end_with_parent
 
 __all__ = [
     "FUSION_MARGIN_M",
@@ -683,8 +684,10 @@ def _children_ignore_ctrl_c() -> Iterator[None]:
         signal.signal(signal.SIGINT, previous)
 
 
-def _worker_init(open_writer: Callable[[Path, DatasetLock], BaseSceneWriter], out_dir: str) -> None:
+def _worker_init(open_writer: Callable[[Path, DatasetLock], BaseSceneWriter], out_dir: str, owner_pid: int) -> None:
     global _WORKER  # one writer per worker process, created once
+    # A build killed with kill -9 takes its workers along: none lives on holding the dataset's lock.
+    end_with_parent(owner_pid)
     # Ctrl-C reaches every process of the terminal's process group; the parent stops the pool, and a
     # worker that took it too would print a traceback of its own.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -790,7 +793,10 @@ def _write_in_workers(
     open_writer: Callable[[Path, DatasetLock], BaseSceneWriter], out_dir: Path, workers: int, todo: list[int]
 ) -> Iterator[int]:
     pool = ProcessPoolExecutor(
-        workers, mp_context=mp.get_context("spawn"), initializer=_worker_init, initargs=(open_writer, str(out_dir))
+        workers,
+        mp_context=mp.get_context("spawn"),
+        initializer=_worker_init,
+        initargs=(open_writer, str(out_dir), os.getpid()),
     )
     try:
         # Spawned workers start at the first submissions. One BLAS/OpenMP thread each: the workers already

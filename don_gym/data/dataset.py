@@ -27,6 +27,7 @@ import numpy as np
 from don_gym.errors import DatasetError
 from don_gym.geometry import CameraIntrinsics
 from don_gym.io import DirectoryLock, atomic_path, write_png, write_text_atomic
+from don_gym.processes import process_alive
 
 __all__ = [
     "DATASET_FILE",
@@ -376,20 +377,8 @@ def remove_stale_scene_dirs(root: Path, scene_index: int) -> None:
     for kind in ("partial", "stale"):
         for path in final.parent.glob(f".{final.name}.{kind}-{_HOST}-*"):
             pid = path.name[len(f".{final.name}.{kind}-{_HOST}-") :].split("-")[0]
-            if pid.isdigit() and not _process_alive(int(pid)):
+            if pid.isdigit() and not process_alive(int(pid)):
                 shutil.rmtree(path, ignore_errors=True)
-
-
-def _process_alive(pid: int) -> bool:
-    if pid == os.getpid():
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # alive, someone else's
-        return True
-    return True
 
 
 class DatasetLock(DirectoryLock):
