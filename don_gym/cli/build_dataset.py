@@ -27,7 +27,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    parser.add_argument("--object", default="toolcap", help="built-in name (toolcap, shaft) or a mesh file")
+    parser.add_argument(
+        "--object",
+        default=None,
+        help="with --scene single: built-in name (toolcap, shaft) or a mesh file (default: toolcap); a bin build "
+        "takes its parts from --parts",
+    )
     parser.add_argument(
         "--scene",
         default="single",
@@ -82,8 +87,13 @@ def run(args: argparse.Namespace) -> int:
     from don_gym.data.build import DatasetConfig, build_dataset, parse_shard
     from don_gym.errors import DatasetError
 
+    if args.scene == "bin" and args.object is not None:
+        raise DatasetError(
+            f"--object {args.object!r}: a bin build (--scene bin) takes its parts from --parts, e.g. "
+            f"--parts {args.object}:3,shaft:2; leave out --object"
+        )
     config = DatasetConfig(
-        object=args.object,
+        object="toolcap" if args.object is None else args.object,
         object_scale=args.object_scale,
         scenes=args.scenes,
         frames_per_scene=args.frames,

@@ -414,6 +414,7 @@ def read_ply_model(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     import trimesh
 
     from don_gym.errors import MeshError
+    from don_gym.objects import check_faces
 
     path = Path(path)
     if not path.is_file():
@@ -428,6 +429,7 @@ def read_ply_model(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         raise MeshError(f"{path}: a PLY without faces (a point cloud); expected a triangle mesh")
     if len(vertices) < 3 or not np.all(np.isfinite(vertices)):
         raise MeshError(f"{path}: expected at least 3 finite vertices")
+    check_faces(faces, len(vertices), str(path))
     return vertices, faces
 
 

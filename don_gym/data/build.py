@@ -286,6 +286,7 @@ def _resolve_dataset(
             _check_field_fits(field, computed, config, out_dir)
         wanted = dataset_info(config, model, field if field is not None else computed)
         if recorded is not None:
+            _check_single_kind(recorded, out_dir)
             check_dataset_identity(recorded, wanted, out_dir, field, computed)
             _check_recorded_field(field, recorded, computed, out_dir)
             scenes = _recorded_scenes(recorded, out_dir)
@@ -309,6 +310,17 @@ def _resolve_dataset(
             continue
         return field
     raise DatasetError(f"{out_dir}: its dataset.json keeps changing while this build starts; try again")
+
+
+def _check_single_kind(recorded: dict[str, Any], out_dir: Path) -> None:
+    """A one-part build never adds scenes to a dataset of another kind (a bin's piles, a BOP import): their scenes
+    hold what its scenes lack (``instance/`` images) and their targets lie in another descriptor space."""
+    kind = recorded.get("scene_kind", "single")
+    if kind != "single":
+        raise DatasetError(
+            f"{out_dir}: holds a dataset of scene kind {kind!r}, not one part per scene (--scene single); pass "
+            "--overwrite to replace it or use another directory"
+        )
 
 
 def embed_part(model: ObjectModel, config: DatasetConfig, what: str | None = None) -> DescriptorField:

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from don_gym.data.dataset import DONDataset, decode_png, frame_path
+from don_gym.data.dataset import DONDataset, check_png_size, decode_png, frame_path, png_size
 from don_gym.errors import DatasetError
 from don_gym.geometry import pose_from_transform
 from don_gym.io import write_bytes_atomic, write_png, write_text_atomic
@@ -40,7 +40,9 @@ def _checked_png(path: Path, shape: tuple[int, ...], dtype: type) -> tuple[bytes
         data = path.read_bytes()
     except FileNotFoundError:
         raise DatasetError(f"{path}: missing; the scene is damaged (rebuild it: delete the scene and resume)") from None
-    image = decode_png(data)
+    if png_size(data) is not None:
+        check_png_size(data, (shape[1], shape[0]), path)  # before decoding: a header may declare gigapixels
+    image = decode_png(data) if png_size(data) is not None else None
     if image is None:
         raise DatasetError(f"{path}: not a readable PNG (empty, truncated or corrupt); the scene is damaged")
     if image.shape != shape or image.dtype != dtype:

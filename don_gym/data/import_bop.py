@@ -16,7 +16,6 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
-import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +30,8 @@ from don_gym.data.dataset import (
     FORMAT_NAME,
     FORMAT_VERSION,
     SCENE_FILE,
+    new_partial_dir,
+    remove_dead_partial_dirs,
     scene_dir,
     write_frame,
     write_json,
@@ -316,8 +317,9 @@ def import_bop(
     say = progress or (lambda _line: None)
 
     made = [p for p in (out.parent, *out.parent.parents) if not p.exists()]
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    # Half-written copies of imports killed on this machine (kill -9, out of memory) go before a new one starts.
+    stale = remove_dead_partial_dirs(out)
+    tmp = new_partial_dir(out)
     try:
         name = f"obj_{obj_id:06d}"
         shutil.copyfile(model_path(root, obj_id, models_dir), tmp / f"{name}.ply")
@@ -332,7 +334,7 @@ def import_bop(
         disagreements = symmetry_disagreements(
             model.mesh, field_.vertex_descriptors, models_info.get(obj_id, {}), np.random.default_rng(0)
         )
-        notes = []
+        notes = [f"removed {len(stale)} half-written copies left beside {out} by killed imports"] if stale else []
         if disagreements:
             notes.append(
                 f"object {obj_id}: its BOP symmetries (models_info.json) disagree with the descriptor field's: "
