@@ -60,7 +60,8 @@ def single_dataset(tmp_path_factory) -> Path:
 
 def test_a_bin_build_refuses_object_and_a_count_of_zero(tmp_path: Path, capsys) -> None:
     out = tmp_path / "data"
-    code = main(["build-dataset", "--scene", "bin", "--object", "my_part.stl", "--parts", "toolcap:3", "--out", str(out)])
+    bin_build = ["build-dataset", "--scene", "bin", "--out", str(out)]
+    code = main([*bin_build, "--object", "my_part.stl", "--parts", "toolcap:3"])
     _one_line_error(code, capsys.readouterr().err, "--object 'my_part.stl'", "--parts")
     code = main(["build-dataset", "--scene", "bin", "--parts", "toolcap:0", "--out", str(out)])
     line = _one_line_error(code, capsys.readouterr().err, "'toolcap'", "at least 1")
