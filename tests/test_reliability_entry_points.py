@@ -5,6 +5,7 @@ exit status 2, with nothing half-written or lost."""
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -20,6 +21,7 @@ import pytest
 from file_snapshots import snapshot
 
 from don_gym.cli import main
+from don_gym.data import bop
 from don_gym.data import dataset as dataset_module
 from don_gym.data.bin_dataset import build_bin_dataset
 from don_gym.data.build import DatasetConfig, build_dataset
@@ -84,6 +86,78 @@ def test_a_one_part_build_into_a_bin_dataset_is_refused(bin_dataset: Path, tmp_p
     code = main(["build-dataset", "--object", "toolcap", *args])
     _one_line_error(code, capsys.readouterr().err, str(pile), "scene kind 'bin'", "--overwrite")
     assert snapshot(pile) == before
+
+
+# --- 4, 5: BOP export of several parts, into a folder that holds other data ---------------------------------------
+
+
+def _gt_obj_ids(scene: Path) -> dict[int, list[int]]:
+    return {int(k): [e["obj_id"] for e in v] for k, v in json.loads((scene / "scene_gt.json").read_text()).items()}
+
+
+def test_bop_export_gives_every_part_its_own_object(bin_dataset: Path, tmp_path: Path) -> None:
+    out = tmp_path / "bop"
+    assert main(["export", str(bin_dataset), "--format", "bop", "--split", "train", "--out", str(out)]) == 0
+    info = bop.read_models_info(out / "models" / "models_info.json")
+    assert sorted(info) == [1, 2]
+    for obj_id, part in ((1, "toolcap"), (2, "shaft")):
+        model = load_object(out / "models" / f"obj_{obj_id:06d}.ply", scale=0.001)
+        assert not model.shape_signature.differences(load_object(part).shape_signature), part
+    data = DONDataset(bin_dataset)
+    record = data.scenes[0]
+    parts = {int(i["instance_id"]): i["part"] for i in record.instances}
+    scene = out / "train" / f"{record.index:06d}"
+    shaft_pixels = 0
+    for frame, obj_ids in _gt_obj_ids(scene).items():
+        instance_ids = sorted(record.T_camera_object(frame))
+        assert obj_ids == [{"toolcap": 1, "shaft": 2}[parts[i]] for i in instance_ids]
+        instances = data.image(0, frame, "instance")
+        for gt_id, instance_id in enumerate(instance_ids):
+            visible = bop.read_mask(bop.mask_path(scene, "mask_visib", frame, gt_id))
+            assert not (visible & (instances != instance_id)).any()  # its own pixels, with its own model's silhouette
+            shaft_pixels += int(visible.sum()) if parts[instance_id] == "shaft" else 0
+    assert shaft_pixels > 0
+    # The shaft comes back as the shaft.
+    back = tmp_path / "shaft"
+    assert main(["import-bop", str(out), "--split", "train", "--object", "2", "--out", str(back)]) == 0
+    assert not DONDataset(back).object_model().shape_signature.differences(load_object("shaft").shape_signature)
+
+
+def test_bop_export_into_a_folder_with_other_models_adds_and_changes_nothing(
+    single_dataset: Path, bin_dataset: Path, tmp_path: Path, capsys
+) -> None:
+    out = tmp_path / "bop"
+    bop_scenes.write_models(out / "models")  # object 1 the toolcap, object 2 a box: another dataset's
+    before = snapshot(out)
+    assert main(["export", str(single_dataset), "--format", "bop", "--split", "train", "--out", str(out)]) == 0
+    # The toolcap is object 1 there already: its model and models_info.json stay as they were.
+    assert {k: v for k, v in snapshot(out).items() if k.startswith("models/")} == before
+    assert set(sum(_gt_obj_ids(next((out / "train").iterdir())).values(), [])) == {1}
+    train = snapshot(out / "train")
+    info = json.loads((out / "models" / "models_info.json").read_text())
+    assert main(["export", str(bin_dataset), "--format", "bop", "--split", "test", "--out", str(out)]) == 0
+    # The shaft is new: object 3, added beside the others, which stay untouched.
+    after = snapshot(out)
+    assert all(after[name] == digest for name, digest in before.items() if name.endswith(".ply"))
+    assert snapshot(out / "train") == train
+    now = json.loads((out / "models" / "models_info.json").read_text())
+    assert {k: now[k] for k in info} == info and sorted(now) == ["1", "2", "3"]
+    shaft = load_object(out / "models" / "obj_000003.ply", scale=0.001)
+    assert not shaft.shape_signature.differences(load_object("shaft").shape_signature)
+    assert set(sum(_gt_obj_ids(next((out / "test").iterdir())).values(), [])) == {1, 3}
+    # A split that is there is refused in one line, and nothing changes.
+    everything = snapshot(out)
+    code = main(["export", str(bin_dataset), "--format", "bop", "--split", "test", "--out", str(out)])
+    _one_line_error(code, capsys.readouterr().err, "test", "exists")
+    assert snapshot(out) == everything
+    # Models without their models_info.json are another's data we cannot read: refused, nothing written.
+    (out / "models" / "models_info.json").unlink()
+    other = out / "train"
+    shutil.rmtree(other)
+    everything = snapshot(out)
+    code = main(["export", str(single_dataset), "--format", "bop", "--split", "train", "--out", str(out)])
+    _one_line_error(code, capsys.readouterr().err, "models_info.json")
+    assert snapshot(out) == everything and not other.exists()
 
 
 # --- 6: damaged meshes --------------------------------------------------------------------------------------------

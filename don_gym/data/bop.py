@@ -31,6 +31,7 @@ __all__ = [
     "mask_path",
     "model_diameter",
     "models_info_entry",
+    "models_info_json",
     "read_bop_json",
     "read_color_image",
     "read_depth_mm",
@@ -359,6 +360,12 @@ def read_models_info(path: str | Path) -> dict[int, dict[str, Any]]:
 
 def write_models_info(path: str | Path, models: Mapping[int, Mapping[str, Any]]) -> None:
     """Inverse of :func:`read_models_info`; empty symmetry lists are left out, as in BOP's files."""
+    write_bop_json(path, models_info_json(models))
+
+
+def models_info_json(models: Mapping[int, Mapping[str, Any]]) -> dict[str, Any]:
+    """The content of ``models_info.json`` (keys: object ids as strings) for entries as :func:`read_models_info`
+    returns them, written by :func:`write_models_info` (or merged with a file's entries, then written)."""
     content = {}
     for obj_id, info in models.items():
         entry = {k: v for k, v in info.items() if k not in ("symmetries_discrete", "symmetries_continuous")}
@@ -373,7 +380,7 @@ def write_models_info(path: str | Path, models: Mapping[int, Mapping[str, Any]])
                 for s in info["symmetries_continuous"]
             ]  # fmt: skip
         content[str(int(obj_id))] = entry
-    write_bop_json(path, content)
+    return content
 
 
 def models_info_entry(vertices_mm: np.ndarray, **symmetries: Any) -> dict[str, Any]:
