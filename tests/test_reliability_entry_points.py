@@ -274,3 +274,25 @@ def test_training_refuses_a_frame_of_another_size_without_decoding_it(
     code = main(["export", str(data), "--out", str(tmp_path / "pdc")])
     _one_line_error(code, capsys.readouterr().err, "16000x12000")
     assert not list((tmp_path / "pdc").rglob("*.png"))
+
+
+def test_bop_import_checks_every_image_header_before_decoding(tmp_path: Path, capsys) -> None:
+    root = tmp_path / "bop"
+    bop_scenes.write_bop_dataset(root, images=3)
+    scene = root / "test" / "000001"
+    out = tmp_path / "imported"
+    argv = ["import-bop", str(root), "--split", "test", "--object", "1", "--out", str(out)]
+    expected = f"{bop_scenes.WIDTH}x{bop_scenes.HEIGHT}"
+    for path, declared, says in (
+        (scene / "rgb" / "000001.png", (16000, 12000), f"expected {expected}"),  # not the first image's size
+        (scene / "depth" / "000000.png", (640, 480), f"expected {expected}"),  # not its colour image's
+        (bop.mask_path(scene, "mask_visib", 0, 0), (640, 480), f"expected {expected}"),
+        (scene / "rgb" / "000000.png", (16000, 12000), "more than the"),  # the first: the size limit
+    ):
+        original = path.read_bytes()
+        path.write_bytes(_huge_png(*declared))
+        code = main(argv)
+        _one_line_error(code, capsys.readouterr().err, path.name, f"{declared[0]}x{declared[1]}", says)
+        assert not out.exists() and not list(tmp_path.glob(".imported.partial-*"))
+        path.write_bytes(original)
+    assert main(argv) == 0

@@ -355,7 +355,9 @@ def import_bop(
                 continue
             path = scene_dir(tmp, scene_index)
             path.mkdir(parents=True)
-            meta = _write_scene(path, members, obj_id, name, part_renderer, depth_renderers, descriptor_dim)
+            meta = _write_scene(
+                path, members, obj_id, name, part_renderer, depth_renderers, descriptor_dim, image_size
+            )
             size = (meta["intrinsics"].width, meta["intrinsics"].height)
             if image_size is not None and size != image_size:
                 raise DatasetError(
@@ -453,18 +455,17 @@ def _write_scene(
     part_renderer,
     depth_renderers: dict,
     descriptor_dim: int,
+    image_size: tuple[int, int] | None,
 ) -> dict[str, Any]:
-    """Write the frames of one don_gym scene; returns the per-scene metadata they determine."""
+    """Write the frames of one don_gym scene; returns the per-scene metadata they determine. ``image_size``
+    (width, height): the size of the images imported before, which every image's header must declare."""
     T_camera_object, T_world_camera, reference, instance_ids = [], [], [], set()
     intrinsics = None
     for f, image in enumerate(members):
-        rgb = bop.read_color_image(image.rgb_path)
+        rgb = bop.read_color_image(image.rgb_path, image_size)
         height, width = rgb.shape[:2]
-        depth_m = bop.read_depth_mm(image.depth_path, image.camera["depth_scale"]) / 1000.0
-        if depth_m.shape != (height, width):
-            raise DatasetError(
-                f"{image.depth_path}: {depth_m.shape[1]}x{depth_m.shape[0]} pixels, its colour image {width}x{height}"
-            )
+        image_size = (width, height)
+        depth_m = bop.read_depth_mm(image.depth_path, image.camera["depth_scale"], image_size) / 1000.0
         intrinsics = _intrinsics(image, width, height)
         # Every annotated object rendered: nearest surface per pixel decides what is visible.
         nearest = np.full((height, width), np.inf)
@@ -484,11 +485,7 @@ def _write_scene(
                 continue
             instance_id = gt_id + 1
             visib_path = bop.mask_path(image.rgb_path.parent.parent, "mask_visib", image.im_id, gt_id)
-            visible = bop.read_mask(visib_path) if visib_path.is_file() else owner == gt_id
-            if visible.shape != (height, width):
-                raise DatasetError(
-                    f"{visib_path}: {visible.shape[1]}x{visible.shape[0]} pixels, expected {width}x{height}"
-                )
+            visible = bop.read_mask(visib_path, image_size) if visib_path.is_file() else owner == gt_id
             T = _pose_m(annotation)
             target = part_renderer.render(intrinsics, T, visible_mask=visible)
             descriptor[target.object_mask] = target.descriptor_image[target.object_mask]
