@@ -355,9 +355,7 @@ def import_bop(
                 continue
             path = scene_dir(tmp, scene_index)
             path.mkdir(parents=True)
-            meta = _write_scene(
-                path, members, obj_id, name, part_renderer, depth_renderers, descriptor_dim, image_size
-            )
+            meta = _write_scene(path, members, obj_id, name, part_renderer, depth_renderers, descriptor_dim, image_size)
             size = (meta["intrinsics"].width, meta["intrinsics"].height)
             if image_size is not None and size != image_size:
                 raise DatasetError(
