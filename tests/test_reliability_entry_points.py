@@ -296,3 +296,15 @@ def test_bop_import_checks_every_image_header_before_decoding(tmp_path: Path, ca
         assert not out.exists() and not list(tmp_path.glob(".imported.partial-*"))
         path.write_bytes(original)
     assert main(argv) == 0
+
+
+def test_pdc_export_never_writes_into_a_scene_directory_that_is_there(single_dataset: Path, tmp_path: Path, capsys):
+    out = tmp_path / "pdc"
+    assert main(["export", str(single_dataset), "--out", str(out)]) == 0
+    scene = next(out.iterdir())
+    extra = scene / "processed" / "images" / "000099_rgb.png"  # another dataset's frame, more than ours
+    extra.write_bytes(b"another dataset's")
+    before = snapshot(out)
+    code = main(["export", str(single_dataset), "--out", str(out)])
+    _one_line_error(code, capsys.readouterr().err, scene.name, "exists")
+    assert snapshot(out) == before and not list(out.glob(".*partial-*"))

@@ -52,6 +52,13 @@ def run(args: argparse.Namespace) -> int:
             raise DatasetError(f"{args.out}: {exc}") from exc
         print(f"wrote {path} ({len(scenes)} scenes) and {args.out}/models")
         return 0
+    from don_gym.data.export import pdc_scene_dir
+
+    for scene in scenes:  # none exported while another is in the way
+        if pdc_scene_dir(args.out, dataset, scene).exists():
+            raise DatasetError(
+                f"{pdc_scene_dir(args.out, dataset, scene)}: exists; export into another directory or remove it"
+            )
     for scene in scenes:
         try:
             path = export_scene_pdc(dataset, scene, args.out)

@@ -28,6 +28,7 @@ __all__ = [
     "bop_models_info",
     "export_bop",
     "export_scene_pdc",
+    "pdc_scene_dir",
 ]
 
 EXPORT_FORMATS = ("pdc", "bop")
@@ -80,12 +81,46 @@ def export_scene_pdc(dataset: DONDataset, scene: int, out_dir: str | Path) -> Pa
     Camera poses are the *reported* ones (with calibration error), the only poses a real robot
     would have; the camera frame is the optical frame (x right, y down, z forward).
 
-    Returns the scene's output directory. Raises DatasetError for an unknown scene.
+    The scene is written under a temporary name and renamed when complete; an existing scene directory (another
+    export's, maybe of another dataset) is refused, never written into. Returns the scene's output directory.
+    Raises DatasetError for an unknown scene.
     """
+    from don_gym.data.dataset import new_partial_dir, remove_dead_partial_dirs
+
     if not 0 <= scene < len(dataset.scenes):
         raise DatasetError(f"scene {scene} does not exist; the dataset has {len(dataset.scenes)} complete scenes")
     record = dataset.scenes[scene]
-    processed = Path(out_dir) / record.path.name / "processed"
+    final = pdc_scene_dir(out_dir, dataset, scene)
+    if final.exists():
+        raise DatasetError(f"{final}: exists; export into another directory or remove it")
+    files, camera_info, poses = _pdc_scene_files(record, final / "processed")
+    remove_dead_partial_dirs(final)  # what exports killed on this machine left
+    tmp = new_partial_dir(final)
+    try:
+        for path, content in files.items():
+            path = tmp / path.relative_to(final)
+            if isinstance(content, bytes):
+                write_bytes_atomic(path, content)
+            else:
+                write_png(path, content)
+        images = tmp / "processed" / "images"
+        write_text_atomic(images / "pose_data.yaml", yaml.safe_dump(poses, sort_keys=True))
+        write_text_atomic(images / "camera_info.yaml", yaml.safe_dump(camera_info, sort_keys=False))
+        os.rename(tmp, final)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return final
+
+
+def pdc_scene_dir(out_dir: str | Path, dataset: DONDataset, scene: int) -> Path:
+    """Where :func:`export_scene_pdc` writes scene position ``scene`` of ``dataset`` in ``out_dir``."""
+    return Path(out_dir) / dataset.scenes[scene].path.name
+
+
+def _pdc_scene_files(record, processed: Path) -> tuple[dict[Path, bytes | np.ndarray], dict, dict]:
+    """A scene's pdc files (path -> PNG bytes or a mask to encode), ``camera_info.yaml`` and ``pose_data.yaml``,
+    every image checked first: a damaged dataset is refused, naming the file, before anything is written."""
     images = processed / "images"
     intrinsics = record.intrinsics
     size = (intrinsics.height, intrinsics.width)
@@ -109,11 +144,6 @@ def export_scene_pdc(dataset: DONDataset, scene: int, out_dir: str | Path) -> Pa
         mask = _checked_png(mask_path, size, np.uint8)[1]
         files[processed / "image_masks" / f"{name}_mask.png"] = (mask > 127).astype(np.uint8)
         poses[frame] = _pose_entry(record.T_world_camera_reported[frame])
-    for path, content in files.items():
-        if isinstance(content, bytes):
-            write_bytes_atomic(path, content)
-        else:
-            write_png(path, content)
     camera_info = {
         "camera_matrix": {"rows": 3, "cols": 3, "data": [float(v) for v in intrinsics.K.ravel()]},
         "image_width": intrinsics.width,
@@ -123,9 +153,7 @@ def export_scene_pdc(dataset: DONDataset, scene: int, out_dir: str | Path) -> Pa
         "distortion_model": "plumb_bob",
         "distortion_coefficients": {"rows": 1, "cols": 5, "data": [0.0] * 5},
     }
-    write_text_atomic(images / "pose_data.yaml", yaml.safe_dump(poses, sort_keys=True))
-    write_text_atomic(images / "camera_info.yaml", yaml.safe_dump(camera_info, sort_keys=False))
-    return processed.parent
+    return files, camera_info, poses
 
 
 def bop_models_info(model) -> dict:
