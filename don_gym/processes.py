@@ -42,7 +42,7 @@ def process_alive(pid: int) -> bool:
     return True
 
 
-def end_with_parent(owner_pid: int) -> None:
+def end_with_parent(owner_pid: int, parent_death_signal: bool = True) -> None:
     """End this process (SIGKILL) as soon as process ``owner_pid`` ends, however it ends.
 
     Two guards: Linux's parent-death signal (``prctl(PR_SET_PDEATHSIG)``) for the direct parent, and a
@@ -51,8 +51,10 @@ def end_with_parent(owner_pid: int) -> None:
     wait is a pidfd where the kernel has them (Linux 5.3+), else a look every :data:`PARENT_POLL_S` s.
     An owner that is already gone ends the worker at once. SIGKILL, not an exception: a worker killed so
     leaves only its temporary files, which the next run removes, and cannot hang on a queue nobody reads.
+    ``parent_death_signal=False`` keeps to the watch: the signal follows the parent *thread* that started the
+    process, and a launcher (torchrun) may start its processes from a thread that ends before they do.
     """
-    if sys.platform.startswith("linux"):
+    if parent_death_signal and sys.platform.startswith("linux"):
         with contextlib.suppress(OSError, AttributeError):
             libc = ctypes.CDLL(None, use_errno=True)
             libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)

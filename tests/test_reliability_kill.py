@@ -129,6 +129,50 @@ def test_a_killed_training_leaves_no_data_loading_worker(tmp_path: Path) -> None
     lock.close()
 
 
+def _processes_naming(text: str) -> list[int]:
+    """Pids of the live processes whose command line holds ``text``."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit() and int(entry.name) != os.getpid():
+            try:
+                if text.encode() in (entry / "cmdline").read_bytes():
+                    found.append(int(entry.name))
+            except OSError:
+                continue
+    return [pid for pid in found if process_alive(pid)]
+
+
+def test_a_killed_torchrun_leaves_no_training_process(tmp_path: Path) -> None:
+    """torchrun starts each process in a session of its own: they watch torchrun itself."""
+    data = tmp_path / "data"
+    build_dataset(
+        DatasetConfig(scenes=1, frames_per_scene=2, image_size=(64, 48), fuse_depth=False, seed=3), data, progress=False
+    )
+    run = tmp_path / "torchrun-run"
+    command = [
+        sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
+        "-m", "don_gym.cli", "train", "--method", "supervised", "--data", str(data), "--out", str(run),
+        "--steps", "100000", "--checkpoint-every", "100000", "--crop", "none", "--batch-size", "2", "--threads", "1",
+    ]  # fmt: skip
+    log = tmp_path / "log.txt"
+    launcher = _start(command, log)
+    ranks: list[int] = []
+
+    def training() -> bool:
+        ranks[:] = [p for p in _processes_naming(str(run)) if p != launcher.pid]
+        return launcher.poll() is None and len(ranks) >= 2 and (run / "config.json").exists()
+
+    session = _kill_when(launcher, training, "two training processes", log)
+    _assert_session_ends(session)
+    deadline = time.monotonic() + GRACE_S
+    while any(process_alive(p) for p in ranks) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    left = [p for p in ranks if process_alive(p)]
+    for pid in left:
+        os.kill(pid, signal.SIGKILL)
+    assert not left, f"training processes {left} outlived torchrun by {GRACE_S} s"
+
+
 def test_end_with_parent_ends_a_process_whose_owner_is_not_its_parent(tmp_path: Path) -> None:
     """The watch on the owner's pid, beyond the parent-death signal: a worker whose parent is a fork server (here
     a middle process that lives on) ends when its owner is killed."""
