@@ -129,6 +129,38 @@ def test_a_killed_training_leaves_no_data_loading_worker(tmp_path: Path) -> None
     lock.close()
 
 
+class SleepyRunner:
+    """A benchmark's runner (``runner_type(config, device)``) whose every task marks its start in folder ``config``
+    and then takes ten minutes."""
+
+    def __init__(self, config: str, device: str) -> None:
+        self.folder = Path(config)
+
+    def run(self, task: int) -> dict:
+        (self.folder / f"{os.getpid()}.started").touch()
+        time.sleep(600)
+        return {}
+
+    def close(self) -> None:
+        pass
+
+
+def test_a_killed_benchmark_leaves_no_episode_worker(tmp_path: Path) -> None:
+    """The episode pool of ``benchmark grasp`` and ``benchmark bin`` (don_gym.evaluation.episodes)."""
+    script = (
+        "import sys; sys.path.insert(0, sys.argv[1]); from test_reliability_kill import SleepyRunner; "
+        "from don_gym.evaluation.episodes import run_tasks; "
+        "run_tasks(SleepyRunner, sys.argv[2], 'cpu', list(range(8)), 2, False, 'episode', 'benchmark')"
+    )
+    log = tmp_path / "log.txt"
+    benchmark = _start([sys.executable, "-c", script, str(Path(__file__).parent), str(tmp_path)], log)
+
+    def running() -> bool:
+        return benchmark.poll() is None and len(list(tmp_path.glob("*.started"))) >= 2
+
+    _assert_session_ends(_kill_when(benchmark, running, "two episode workers at work", log))
+
+
 def _processes_naming(text: str) -> list[int]:
     """Pids of the live processes whose command line holds ``text``."""
     found = []
