@@ -308,3 +308,21 @@ def test_pdc_export_never_writes_into_a_scene_directory_that_is_there(single_dat
     code = main(["export", str(single_dataset), "--out", str(out)])
     _one_line_error(code, capsys.readouterr().err, scene.name, "exists")
     assert snapshot(out) == before and not list(out.glob(".*partial-*"))
+
+
+def test_pose_reference_frames_of_a_pile_show_the_primary_part(bin_dataset: Path, tmp_path: Path) -> None:
+    """Not the frame where the pile covers most pixels: one where the primary part (the toolcap) shows most."""
+    from don_gym.data.dataset import write_frame
+    from don_gym.evaluation import pose_evaluation
+
+    pile = tmp_path / "pile"
+    shutil.copytree(bin_dataset, pile)
+    data = DONDataset(pile)
+    record = data.scenes[0]
+    shaft = next(int(i["instance_id"]) for i in record.instances if i["part"] == "shaft")
+    toolcap = next(int(i["instance_id"]) for i in record.instances if i["part"] == "toolcap")
+    assert np.count_nonzero(data.image(0, 1, "instance") == toolcap) > 0
+    size = (record.intrinsics.height, record.intrinsics.width)
+    # Frame 0: the shaft fills the whole image, so the pile's mask is largest there, yet no toolcap shows.
+    write_frame(record.path, 0, {"mask": np.ones(size, bool), "instance": np.full(size, shaft)}, data.descriptor_dim)
+    assert pose_evaluation._reference_frames(DONDataset(pile), count=1) == [1]
