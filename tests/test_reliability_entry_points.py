@@ -326,3 +326,17 @@ def test_pose_reference_frames_of_a_pile_show_the_primary_part(bin_dataset: Path
     # Frame 0: the shaft fills the whole image, so the pile's mask is largest there, yet no toolcap shows.
     write_frame(record.path, 0, {"mask": np.ones(size, bool), "instance": np.full(size, shaft)}, data.descriptor_dim)
     assert pose_evaluation._reference_frames(DONDataset(pile), count=1) == [1]
+
+
+@pytest.mark.parametrize("scene", ["single", "bin"])
+def test_overwrite_never_deletes_a_directory_that_is_no_dataset(scene: str, tmp_path: Path, capsys) -> None:
+    folder = tmp_path / "my documents"
+    (folder / "thesis").mkdir(parents=True)
+    (folder / "thesis" / "chapter1.tex").write_text("months of work")
+    (folder / "notes.txt").write_text("more")
+    before = snapshot(folder)
+    kind = ["--scene", "bin", "--parts", "toolcap:1"] if scene == "bin" else []
+    code = main(["build-dataset", *kind, "--scenes", "1", "--frames", "2", "--size", "32x24", "--overwrite",
+                 "--out", str(folder)])  # fmt: skip
+    _one_line_error(code, capsys.readouterr().err, str(folder), "not a don_gym dataset", "--overwrite")
+    assert snapshot(folder) == before and sorted(p.name for p in folder.iterdir()) == ["notes.txt", "thesis"]

@@ -274,6 +274,7 @@ def prepare_bin_dataset_dir(
         config,
         overwrite,
         lambda write: _resolve(out_dir, config, models, counts, keys, computed, gap, write),
+        (PART_SPACE_FILE, PART_FIELDS_DIR),
     )
     return _Prepared(models, counts, fields, space), lock
 

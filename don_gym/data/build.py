@@ -448,7 +448,11 @@ _Resolved = TypeVar("_Resolved")
 
 
 def join_dataset_dir(
-    out_dir: Path, config: DatasetConfig, overwrite: bool, resolve: Callable[[bool], _Resolved]
+    out_dir: Path,
+    config: DatasetConfig,
+    overwrite: bool,
+    resolve: Callable[[bool], _Resolved],
+    also_ours: tuple[str, ...] = (),
 ) -> tuple[_Resolved, DatasetLock]:
     """Create, replace (``overwrite``) or join the dataset in ``out_dir``, checked first: returns what
     ``resolve(write=True)`` returns under the metadata lock, and the lock, held shared (the caller closes it).
@@ -458,6 +462,8 @@ def join_dataset_dir(
     """
     if not overwrite:
         resolve(False)
+    else:
+        _check_replaceable(out_dir, also_ours)
     _check_renderer_available(config.renderer)
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -473,6 +479,21 @@ def join_dataset_dir(
         lock.close()
         raise
     return resolved, lock
+
+
+def _check_replaceable(out_dir: Path, also_ours: tuple[str, ...]) -> None:
+    """``--overwrite`` replaces a dataset (or the start of one, ``also_ours`` as for :func:`check_not_foreign`),
+    never a directory of someone's other files."""
+    if not out_dir.is_dir() or (out_dir / DATASET_FILE).is_file():
+        return
+    try:
+        check_not_foreign(out_dir, also_ours)
+    except DatasetError:
+        foreign = sorted(p.name for p in out_dir.iterdir())
+        raise DatasetError(
+            f"{out_dir}: is not a don_gym dataset (holds {foreign[0]!r}, no {DATASET_FILE}); --overwrite replaces a "
+            "dataset, never other files: use an empty directory or a new one"
+        ) from None
 
 
 def scene_seed(seed: int, scene_index: int) -> int:
