@@ -117,8 +117,8 @@ def resolve_bin_parts(parts: Mapping[str, int]) -> tuple[dict[str, ObjectModel],
     for key, count in parts.items():
         if isinstance(count, bool) or not isinstance(count, int) or count < 1:
             raise DatasetError(
-                f"parts={dict(parts)!r} (--parts): part {key!r} has {count!r} instances; expected a count of at "
-                "least 1 (leave out a part the piles should not hold)"
+                f"parts={dict(parts)!r} (--parts): part {key!r} has count {count!r}; expected a count of at least 1 "
+                "(leave out a part the piles should not hold)"
             )
     present = list(parts)
     try:
