@@ -70,6 +70,9 @@ def test_a_bin_build_refuses_object_and_a_count_of_zero(tmp_path: Path, capsys) 
     assert "not among the parts" not in line
     code = main(["build-dataset", "--scene", "bin", "--parts", "toolcap:2,shaft:0", "--out", str(out)])
     _one_line_error(code, capsys.readouterr().err, "'shaft'", "at least 1")
+    # The reverse: --parts without --scene bin is not ignored either.
+    code = main(["build-dataset", "--parts", "shaft:2", "--out", str(out)])
+    _one_line_error(code, capsys.readouterr().err, "--parts 'shaft:2'", "--scene bin")
     assert not out.exists()
 
 

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 
+#: The pile of a bin build without --parts.
+DEFAULT_PARTS = "toolcap:3,shaft:2"
+
 
 def _size(text: str) -> tuple[int, int]:
     from don_gym.cli import parse_size
@@ -41,8 +44,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--parts",
-        default="toolcap:3,shaft:2",
-        help="with --scene bin: PART:COUNT[,PART:COUNT...] instances per pile (built-in names or mesh files)",
+        default=None,
+        help="with --scene bin: PART:COUNT[,PART:COUNT...] instances per pile (built-in names or mesh files; "
+        f"default: {DEFAULT_PARTS})",
     )
     parser.add_argument(
         "--object-scale", type=float, default=None, help="mesh file units to metres (e.g. 0.001 for mm)"
@@ -92,6 +96,11 @@ def run(args: argparse.Namespace) -> int:
             f"--object {args.object!r}: a bin build (--scene bin) takes its parts from --parts, e.g. "
             f"--parts {args.object}:3,shaft:2; leave out --object"
         )
+    if args.scene == "single" and args.parts is not None:
+        raise DatasetError(
+            f"--parts {args.parts!r}: piles of several parts are built with --scene bin; a one-part build "
+            "(--scene single, the default) takes its part from --object"
+        )
     config = DatasetConfig(
         object="toolcap" if args.object is None else args.object,
         object_scale=args.object_scale,
@@ -113,8 +122,9 @@ def run(args: argparse.Namespace) -> int:
         if args.scene == "bin":
             from don_gym.data.bin_dataset import build_bin_dataset, parse_parts
 
+            parts = parse_parts(args.parts or DEFAULT_PARTS)
             report = build_bin_dataset(
-                config, parse_parts(args.parts), args.out, workers=args.workers, shard=shard, overwrite=args.overwrite
+                config, parts, args.out, workers=args.workers, shard=shard, overwrite=args.overwrite
             )
         else:
             report = build_dataset(config, args.out, workers=args.workers, shard=shard, overwrite=args.overwrite)
