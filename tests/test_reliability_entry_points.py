@@ -98,9 +98,10 @@ def _gt_obj_ids(scene: Path) -> dict[int, list[int]]:
     return {int(k): [e["obj_id"] for e in v] for k, v in json.loads((scene / "scene_gt.json").read_text()).items()}
 
 
-def test_bop_export_gives_every_part_its_own_object(bin_dataset: Path, tmp_path: Path) -> None:
+def test_bop_export_gives_every_part_its_own_object(bin_dataset: Path, tmp_path: Path, capsys) -> None:
     out = tmp_path / "bop"
     assert main(["export", str(bin_dataset), "--format", "bop", "--split", "train", "--out", str(out)]) == 0
+    assert "toolcap = obj_id 1, shaft = obj_id 2" in capsys.readouterr().out
     info = bop.read_models_info(out / "models" / "models_info.json")
     assert sorted(info) == [1, 2]
     for obj_id, part in ((1, "toolcap"), (2, "shaft")):

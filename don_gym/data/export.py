@@ -11,6 +11,7 @@ from __future__ import annotations
 import fcntl
 import os
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +25,7 @@ from don_gym.io import write_bytes_atomic, write_png, write_text_atomic
 
 __all__ = [
     "BOP_SPLITS",
+    "BopExport",
     "EXPORT_FORMATS",
     "bop_models_info",
     "export_bop",
@@ -278,7 +280,15 @@ def _assign_object_ids(out_dir: Path, models: dict) -> tuple[dict[str, int], dic
     return ids, existing
 
 
-def export_bop(dataset: DONDataset, out_dir: str | Path, split: str = "train", scenes=None) -> Path:
+@dataclass(frozen=True)
+class BopExport:
+    """What :func:`export_bop` wrote: the split directory and each part's BOP object id, by part name."""
+
+    split_dir: Path
+    object_ids: dict[str, int]
+
+
+def export_bop(dataset: DONDataset, out_dir: str | Path, split: str = "train", scenes=None) -> BopExport:
     """Write ``dataset`` as a BOP scene-wise dataset in ``out_dir``, every part as an object of its own::
 
         models/obj_NNNNNN.ply, models/models_info.json   each part in millimetres
@@ -296,7 +306,6 @@ def export_bop(dataset: DONDataset, out_dir: str | Path, split: str = "train", s
     ``camera.json`` stay as they are. Poses are the TRUE ones (``SceneRecord.T_camera_object``): what pose
     evaluation compares against. The split directory is written under a temporary name and renamed when
     complete; an existing one is refused. Exports into one folder on one machine take turns (``OUT/.lock``).
-    Returns the split directory.
     """
     from don_gym.data import bop
     from don_gym.data.dataset import new_partial_dir, remove_dead_partial_dirs
@@ -353,7 +362,7 @@ def export_bop(dataset: DONDataset, out_dir: str | Path, split: str = "train", s
                 shutil.rmtree(tmp, ignore_errors=True)
     finally:
         lock.close()
-    return split_dir
+    return BopExport(split_dir, obj_ids)
 
 
 def _write_bop_scene(dataset: DONDataset, scene: int, split_tmp: Path, files: dict) -> None:
