@@ -202,7 +202,7 @@ def test_a_damaged_mesh_is_one_line_naming_the_file(tmp_path: Path, capsys) -> N
 # --- 7: an import killed part-way ---------------------------------------------------------------------------------
 
 
-def test_a_killed_import_leaves_a_copy_the_rerun_removes(tmp_path: Path) -> None:
+def test_a_killed_import_leaves_a_copy_the_rerun_removes(tmp_path: Path, capsys) -> None:
     root = tmp_path / "BOP daten"
     bop_scenes.write_bop_dataset(root, images=6)
     out = tmp_path / "Ausgabe für Tests" / "my data"
@@ -226,10 +226,13 @@ def test_a_killed_import_leaves_a_copy_the_rerun_removes(tmp_path: Path) -> None
     # Beside it: a copy of a live import (this process) and one of another host, which the rerun leaves alone.
     live = out.parent / f".my data.partial-{dataset_module._HOST}-{os.getpid()}-abcd"
     other_host = out.parent / f".my data.partial-another-host-{importer.pid}-abcd"
-    live.mkdir()
-    other_host.mkdir()
+    legacy = out.parent / ".my data.partial-x1y2z3w4"  # an older don_gym's name: no host, no pid
+    for folder in (live, other_host, legacy):
+        folder.mkdir()
     code = main(["import-bop", str(root), "--split", "test", "--object", "1", "--out", str(out)])
     assert code == 0
+    notes = capsys.readouterr().out
+    assert "removed 1 half-written" in notes and "1 hidden copies" in notes and legacy.is_dir()
     assert not any(p.exists() for p in left), "the killed import's copy is still there"
     assert live.is_dir() and other_host.is_dir()
     assert len(DONDataset(out).scenes) == 1

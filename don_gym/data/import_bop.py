@@ -335,6 +335,12 @@ def import_bop(
             model.mesh, field_.vertex_descriptors, models_info.get(obj_id, {}), np.random.default_rng(0)
         )
         notes = [f"removed {len(stale)} half-written copies left beside {out} by killed imports"] if stale else []
+        legacy = _legacy_partial_dirs(out)
+        if legacy:
+            notes.append(
+                f"{len(legacy)} hidden copies beside {out} ({legacy[0].name}...) were left by imports of an older "
+                "don_gym, whose writer this one cannot tell alive or dead: remove them by hand if no import runs"
+            )
         if disagreements:
             notes.append(
                 f"object {obj_id}: its BOP symmetries (models_info.json) disagree with the descriptor field's: "
@@ -443,6 +449,17 @@ def import_bop(
             with contextlib.suppress(OSError):
                 folder.rmdir()
     return BopImportResult(out, scene_index, frames, notes)
+
+
+def _legacy_partial_dirs(out: Path) -> list[Path]:
+    """Hidden copies beside ``out`` named as imports before don_gym recorded host and pid wrote them
+    (``.NAME.partial-`` and eight random characters)."""
+    prefix = f".{out.name}.partial-"
+    return sorted(
+        p
+        for p in out.parent.iterdir()
+        if p.name.startswith(prefix) and len(p.name) == len(prefix) + 8 and "-" not in p.name[len(prefix) :]
+    )
 
 
 def _write_scene(
