@@ -380,11 +380,12 @@ def new_scene_tmp_dir(root: Path, scene_index: int) -> Path:
     return new_partial_dir(scene_dir(root, scene_index))
 
 
-def new_partial_dir(final: Path) -> Path:
-    """A fresh hidden directory beside ``final`` (``.NAME.partial-HOST-PID-XXXX``) to write it in, then rename:
-    named after this host and process, so that :func:`remove_dead_partial_dirs` knows when its writer is gone."""
+def new_partial_dir(final: Path, kind: str = "partial") -> Path:
+    """A fresh hidden directory beside ``final`` (``.NAME.partial-HOST-PID-XXXX``) to write it in, then rename
+    (``kind`` ``"stale"``: to move an old ``final`` aside onto, then remove): named after this host and process,
+    so that :func:`remove_dead_partial_dirs` knows when its writer is gone."""
     final.parent.mkdir(parents=True, exist_ok=True)
-    path = Path(tempfile.mkdtemp(prefix=f".{final.name}.partial-{_HOST}-{os.getpid()}-", dir=final.parent))
+    path = Path(tempfile.mkdtemp(prefix=f".{final.name}.{kind}-{_HOST}-{os.getpid()}-", dir=final.parent))
     # mkdtemp makes it owner-only; the result keeps these permissions, and others may read it.
     umask = os.umask(0)
     os.umask(umask)

@@ -318,7 +318,7 @@ def import_bop(
 
     made = [p for p in (out.parent, *out.parent.parents) if not p.exists()]
     # Half-written copies of imports killed on this machine (kill -9, out of memory) go before a new one starts.
-    stale = remove_dead_partial_dirs(out)
+    stale = remove_dead_partial_dirs(out, ("partial", "stale"))
     tmp = new_partial_dir(out)
     try:
         name = f"obj_{obj_id:06d}"
@@ -438,9 +438,13 @@ def import_bop(
                 },
             },
         )
-        if out.exists():
-            shutil.rmtree(out)
-        os.rename(tmp, out)
+        if out.exists():  # --overwrite: the old dataset moved aside in one rename, removed once the new one is in
+            replaced = new_partial_dir(out, kind="stale")
+            os.rename(out, replaced)
+            os.rename(tmp, out)
+            shutil.rmtree(replaced, ignore_errors=True)
+        else:
+            os.rename(tmp, out)
         made = []
     finally:
         if tmp.exists():
