@@ -166,8 +166,12 @@ def _train(args: argparse.Namespace, run: TrainingRun, progress: bool = True) ->
     )  # fmt: skip
 
 
-def _train_in_child(args: argparse.Namespace, run: TrainingRun, log_path: Path) -> None:
-    """A worker process of :func:`train_runs`: its output (and its env subprocesses') goes to ``log_path``."""
+def _train_in_child(args: argparse.Namespace, run: TrainingRun, log_path: Path, owner_pid: int) -> None:
+    """A worker process of :func:`train_runs`: its output (and its env subprocesses') goes to ``log_path``; it ends
+    with ``owner_pid`` (this script), also when that is killed with kill -9."""
+    from don_gym.processes import end_with_parent
+
+    end_with_parent(owner_pid)
     log = open(log_path, "a", buffering=1)  # noqa: SIM115 -- held open for the life of the process
     os.dup2(log.fileno(), 1)
     os.dup2(log.fileno(), 2)
@@ -214,7 +218,8 @@ def train_runs(args: argparse.Namespace, runs: list[TrainingRun], jobs: int) -> 
             while pending and len(running) < jobs:
                 run = pending.pop(0)
                 log_path = args.out / f"{run.name}.log"
-                process = context.Process(target=_train_in_child, args=(args, run, log_path), name=run.name)
+                child_args = (args, run, log_path, os.getpid())
+                process = context.Process(target=_train_in_child, args=child_args, name=run.name)
                 process.start()
                 running[run.name] = (process, run)
             time.sleep(2.0)

@@ -442,7 +442,10 @@ class BusyCores:
         self.processes: list[subprocess.Popen] = []
 
     def __enter__(self) -> BusyCores:
-        command = [sys.executable, "-c", "while True: pass"]
+        # Each ends with this script, also when it is killed with kill -9: none spins on after it.
+        loop = "import sys\nfrom don_gym.processes import end_with_parent\nend_with_parent(int(sys.argv[1]))\n"
+        loop += "while True: pass"
+        command = [sys.executable, "-c", loop, str(os.getpid())]
         self.processes = [subprocess.Popen(command) for _ in range(self.count)]
         time.sleep(0.5)  # running before the timing starts
         return self

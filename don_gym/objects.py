@@ -350,6 +350,20 @@ def _principal_axis(mesh: trimesh.Trimesh) -> np.ndarray:
     return axis if skew >= 0 else -axis
 
 
+def check_faces(faces: np.ndarray, vertex_count: int, what: str) -> None:
+    """MeshError naming ``what`` unless ``faces`` is (M, 3) triangles of vertex indices in 0..vertex_count-1: a
+    damaged file's face may name a vertex it does not hold."""
+    faces = np.asarray(faces)
+    if faces.ndim != 2 or faces.shape[1] != 3 or not (faces.size == 0 or np.issubdtype(faces.dtype, np.integer)):
+        raise MeshError(f"{what}: faces of shape {faces.shape} ({faces.dtype}); expected triangles of vertex indices")
+    if faces.size and (faces.min() < 0 or faces.max() >= vertex_count):
+        bad = int(faces.max()) if faces.max() >= vertex_count else int(faces.min())
+        raise MeshError(
+            f"{what}: a face names vertex {bad}, but the mesh has {vertex_count} vertices (0..{vertex_count - 1}); "
+            "the file is damaged"
+        )
+
+
 def clean_mesh(mesh: trimesh.Trimesh, what: str) -> trimesh.Trimesh:
     """Validate and clean a mesh: finite vertices, merged duplicates, no degenerate or
     duplicate faces, no unreferenced vertices. ``what`` names the input in errors."""
@@ -359,6 +373,7 @@ def clean_mesh(mesh: trimesh.Trimesh, what: str) -> trimesh.Trimesh:
     if not np.all(np.isfinite(vertices)):
         bad = int((~np.isfinite(vertices)).any(axis=1).sum())
         raise MeshError(f"{what}: {bad} vertices are NaN or infinite; expected finite coordinates")
+    check_faces(mesh.faces, len(vertices), what)
     mesh = mesh.copy()
     mesh.merge_vertices()
     mesh.update_faces(mesh.nondegenerate_faces())

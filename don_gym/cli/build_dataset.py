@@ -6,6 +6,9 @@ import argparse
 
 from don_gym.sim.camera import RENDERERS
 
+#: The pile of a bin build without --parts.
+DEFAULT_PARTS = "toolcap:3,shaft:2"
+
 
 def _size(text: str) -> tuple[int, int]:
     from don_gym.cli import parse_size
@@ -29,7 +32,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    parser.add_argument("--object", default="toolcap", help="built-in name (toolcap, shaft) or a mesh file")
+    parser.add_argument(
+        "--object",
+        default=None,
+        help="with --scene single: built-in name (toolcap, shaft) or a mesh file (default: toolcap); a bin build "
+        "takes its parts from --parts",
+    )
     parser.add_argument(
         "--scene",
         default="single",
@@ -38,8 +46,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--parts",
-        default="toolcap:3,shaft:2",
-        help="with --scene bin: PART:COUNT[,PART:COUNT...] instances per pile (built-in names or mesh files)",
+        default=None,
+        help="with --scene bin: PART:COUNT[,PART:COUNT...] instances per pile (built-in names or mesh files; "
+        f"default: {DEFAULT_PARTS})",
     )
     parser.add_argument(
         "--object-scale", type=float, default=None, help="mesh file units to metres (e.g. 0.001 for mm)"
@@ -89,8 +98,18 @@ def run(args: argparse.Namespace) -> int:
     from don_gym.data.build import DatasetConfig, build_dataset, parse_shard
     from don_gym.errors import DatasetError
 
+    if args.scene == "bin" and args.object is not None:
+        raise DatasetError(
+            f"--object {args.object!r}: a bin build (--scene bin) takes its parts from --parts, e.g. "
+            f"--parts {args.object}:3,shaft:2; leave out --object"
+        )
+    if args.scene == "single" and args.parts is not None:
+        raise DatasetError(
+            f"--parts {args.parts!r}: piles of several parts are built with --scene bin; a one-part build "
+            "(--scene single, the default) takes its part from --object"
+        )
     config = DatasetConfig(
-        object=args.object,
+        object="toolcap" if args.object is None else args.object,
         object_scale=args.object_scale,
         scenes=args.scenes,
         frames_per_scene=args.frames,
@@ -110,8 +129,9 @@ def run(args: argparse.Namespace) -> int:
         if args.scene == "bin":
             from don_gym.data.bin_dataset import build_bin_dataset, parse_parts
 
+            parts = parse_parts(args.parts or DEFAULT_PARTS)
             report = build_bin_dataset(
-                config, parse_parts(args.parts), args.out, workers=args.workers, shard=shard, overwrite=args.overwrite
+                config, parts, args.out, workers=args.workers, shard=shard, overwrite=args.overwrite
             )
         else:
             report = build_dataset(config, args.out, workers=args.workers, shard=shard, overwrite=args.overwrite)

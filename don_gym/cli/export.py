@@ -47,11 +47,19 @@ def run(args: argparse.Namespace) -> int:
         from don_gym.data.export import export_bop
 
         try:
-            path = export_bop(dataset, args.out, split=args.split, scenes=scenes)
+            written = export_bop(dataset, args.out, split=args.split, scenes=scenes)
         except OSError as exc:
             raise DatasetError(f"{args.out}: {exc}") from exc
-        print(f"wrote {path} ({len(scenes)} scenes) and {args.out}/models")
+        ids = ", ".join(f"{name} = obj_id {obj_id}" for name, obj_id in written.object_ids.items())
+        print(f"wrote {written.split_dir} ({len(scenes)} scenes); objects in {args.out}/models: {ids}")
         return 0
+    from don_gym.data.export import pdc_scene_dir
+
+    for scene in scenes:  # none exported while another is in the way
+        if pdc_scene_dir(args.out, dataset, scene).exists():
+            raise DatasetError(
+                f"{pdc_scene_dir(args.out, dataset, scene)}: exists; export into another directory or remove it"
+            )
     for scene in scenes:
         try:
             path = export_scene_pdc(dataset, scene, args.out)

@@ -108,13 +108,19 @@ def parse_parts(text: str) -> dict[str, int]:
 
 
 def resolve_bin_parts(parts: Mapping[str, int]) -> tuple[dict[str, ObjectModel], dict[str, int]]:
-    """Models and counts (by part name) of the parts with at least one instance, checked as the bin env checks
-    them (unknown part, negative count, more parts than fit the bin): DatasetError naming the input."""
+    """Models and counts (by part name) of the parts, checked as the bin env checks them (unknown part, more parts
+    than fit the bin) and every count at least 1: DatasetError naming the input."""
     from don_gym.sim.bin_env import resolve_parts
 
     if not isinstance(parts, Mapping) or not parts:
         raise DatasetError(f"parts={parts!r} (--parts): expected PART:COUNT pairs, e.g. toolcap:3,shaft:2")
-    present = [key for key, count in parts.items() if isinstance(count, int) and count > 0]
+    for key, count in parts.items():
+        if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+            raise DatasetError(
+                f"parts={dict(parts)!r} (--parts): part {key!r} has count {count!r}; expected a count of at least 1 "
+                "(leave out a part the piles should not hold)"
+            )
+    present = list(parts)
     try:
         models, counts, _ = resolve_parts(dict(parts), present[0] if present else next(iter(parts)), None)
     except DonGymError as exc:
@@ -268,6 +274,7 @@ def prepare_bin_dataset_dir(
         config,
         overwrite,
         lambda write: _resolve(out_dir, config, models, counts, keys, computed, gap, write),
+        (PART_SPACE_FILE, PART_FIELDS_DIR),
     )
     return _Prepared(models, counts, fields, space), lock
 

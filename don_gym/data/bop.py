@@ -24,13 +24,16 @@ from don_gym.io import write_text_atomic
 __all__ = [
     "GT_INFO_KEYS",
     "IMAGE_EXTENSIONS",
+    "MAX_IMAGE_PIXELS",
     "POSE_RESULTS_HEADER",
     "bbox_of",
     "find_image",
     "gt_info",
+    "image_size",
     "mask_path",
     "model_diameter",
     "models_info_entry",
+    "models_info_json",
     "read_bop_json",
     "read_color_image",
     "read_depth_mm",
@@ -359,6 +362,12 @@ def read_models_info(path: str | Path) -> dict[int, dict[str, Any]]:
 
 def write_models_info(path: str | Path, models: Mapping[int, Mapping[str, Any]]) -> None:
     """Inverse of :func:`read_models_info`; empty symmetry lists are left out, as in BOP's files."""
+    write_bop_json(path, models_info_json(models))
+
+
+def models_info_json(models: Mapping[int, Mapping[str, Any]]) -> dict[str, Any]:
+    """The content of ``models_info.json`` (keys: object ids as strings) for entries as :func:`read_models_info`
+    returns them, written by :func:`write_models_info` (or merged with a file's entries, then written)."""
     content = {}
     for obj_id, info in models.items():
         entry = {k: v for k, v in info.items() if k not in ("symmetries_discrete", "symmetries_continuous")}
@@ -373,7 +382,7 @@ def write_models_info(path: str | Path, models: Mapping[int, Mapping[str, Any]])
                 for s in info["symmetries_continuous"]
             ]  # fmt: skip
         content[str(int(obj_id))] = entry
-    write_bop_json(path, content)
+    return content
 
 
 def models_info_entry(vertices_mm: np.ndarray, **symmetries: Any) -> dict[str, Any]:
@@ -414,6 +423,7 @@ def read_ply_model(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     import trimesh
 
     from don_gym.errors import MeshError
+    from don_gym.objects import check_faces
 
     path = Path(path)
     if not path.is_file():
@@ -428,6 +438,7 @@ def read_ply_model(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         raise MeshError(f"{path}: a PLY without faces (a point cloud); expected a triangle mesh")
     if len(vertices) < 3 or not np.all(np.isfinite(vertices)):
         raise MeshError(f"{path}: expected at least 3 finite vertices")
+    check_faces(faces, len(vertices), str(path))
     return vertices, faces
 
 
@@ -463,9 +474,56 @@ def find_image(folder: Path, im_id: int) -> Path | None:
     return None
 
 
-def _read_image_file(path: Path, flags: int) -> np.ndarray:
+#: Pixels an image of a BOP dataset may declare; a header declaring more is refused before decoding. BOP's
+#: cameras give a few megapixels; a header can declare gigapixels in a file of kilobytes.
+MAX_IMAGE_PIXELS = 50_000_000
+
+
+def image_size(path: str | Path) -> tuple[int, int] | None:
+    """(width, height) in pixels that image file ``path`` declares in its header, read without decoding a pixel
+    (PNG: the IHDR chunk; JPEG, TIFF: Pillow's header parser); None when no header is recognised."""
+    from don_gym.data.dataset import png_size
+
+    path = Path(path)
+    try:
+        with open(path, "rb") as file:
+            head = file.read(24)
+    except OSError as exc:
+        raise DatasetError(f"{path}: missing or unreadable image ({exc.strerror or exc})") from None
+    size = png_size(head)
+    if size is not None:
+        return size
+    try:
+        from PIL import Image
+
+        limit, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None  # only the header is read here
+        try:
+            with Image.open(path) as image:  # lazy: reads the header only
+                return tuple(image.size)
+        finally:
+            Image.MAX_IMAGE_PIXELS = limit
+    except Exception:  # Pillow raises many types for files it does not know
+        return None
+
+
+def _read_image_file(path: Path, flags: int, expected_size: tuple[int, int] | None = None) -> np.ndarray:
+    """The decoded image at ``path``; its header checked first: at most :data:`MAX_IMAGE_PIXELS`, and of
+    ``expected_size`` (width, height) when given."""
     from don_gym.data.dataset import decode_png
 
+    declared = image_size(path)
+    if declared is not None:
+        width, height = declared
+        if expected_size is not None and tuple(declared) != tuple(expected_size):
+            raise DatasetError(
+                f"{path}: {width}x{height} pixels (its header), expected {expected_size[0]}x{expected_size[1]} as the "
+                "images before it; a dataset holds one image size"
+            )
+        if width * height > MAX_IMAGE_PIXELS:
+            raise DatasetError(
+                f"{path}: its header declares {width}x{height} pixels, more than the {MAX_IMAGE_PIXELS:,} an image "
+                "may have here; expected a camera image"
+            )
     try:
         data = path.read_bytes()
     except OSError as exc:
@@ -473,15 +531,21 @@ def _read_image_file(path: Path, flags: int) -> np.ndarray:
     image = decode_png(data, flags)  # any format OpenCV decodes; its log silenced
     if image is None:
         raise DatasetError(f"{path}: unreadable image (empty, truncated or not an image OpenCV reads)")
+    if expected_size is not None and image.shape[:2] != (expected_size[1], expected_size[0]):
+        raise DatasetError(
+            f"{path}: {image.shape[1]}x{image.shape[0]} pixels, expected {expected_size[0]}x{expected_size[1]} as the "
+            "images before it; a dataset holds one image size"
+        )
     return image
 
 
-def read_color_image(path: str | Path) -> np.ndarray:
+def read_color_image(path: str | Path, expected_size: tuple[int, int] | None = None) -> np.ndarray:
     """RGB uint8 (H, W, 3) of a colour or gray PNG/JPEG/TIFF (gray repeated in the three channels;
-    16-bit images scaled to 8 bits)."""
+    16-bit images scaled to 8 bits). ``expected_size`` (width, height): refused unless of that size (checked on
+    the header, before decoding, as the size limit :data:`MAX_IMAGE_PIXELS`)."""
     import cv2
 
-    image = _read_image_file(Path(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+    image = _read_image_file(Path(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR, expected_size)
     if image.dtype == np.uint16:
         image = (image // 257).astype(np.uint8)
     if image.dtype != np.uint8:
@@ -507,12 +571,12 @@ def write_color_image(path: str | Path, rgb: np.ndarray) -> None:
     write_bytes_atomic(path, buffer.tobytes())
 
 
-def read_depth_mm(path: str | Path, depth_scale: float) -> np.ndarray:
+def read_depth_mm(path: str | Path, depth_scale: float, expected_size: tuple[int, int] | None = None) -> np.ndarray:
     """(H, W) float64 depth in millimetres of a BOP depth image (uint16 PNG/TIFF; value times
-    ``depth_scale`` is mm), 0 = no reading."""
+    ``depth_scale`` is mm), 0 = no reading; ``expected_size`` as for :func:`read_color_image`."""
     import cv2
 
-    image = _read_image_file(Path(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_GRAYSCALE)
+    image = _read_image_file(Path(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_GRAYSCALE, expected_size)
     if image.ndim != 2 or image.dtype not in (np.uint16, np.uint8, np.float32):
         raise DatasetError(f"{path}: a {image.dtype} image of shape {image.shape}; expected a one-channel 16-bit depth")
     return image.astype(np.float64) * float(depth_scale)
@@ -527,11 +591,12 @@ def write_depth_mm(path: str | Path, depth_mm: np.ndarray, depth_scale: float = 
     write_png(path, np.clip(np.rint(depth), 0, 65535).astype(np.uint16))
 
 
-def read_mask(path: str | Path) -> np.ndarray:
-    """A BOP mask (``mask/`` or ``mask_visib/``, 0 or 255 per pixel) as bool (H, W)."""
+def read_mask(path: str | Path, expected_size: tuple[int, int] | None = None) -> np.ndarray:
+    """A BOP mask (``mask/`` or ``mask_visib/``, 0 or 255 per pixel) as bool (H, W); ``expected_size`` as for
+    :func:`read_color_image`."""
     import cv2
 
-    return _read_image_file(Path(path), cv2.IMREAD_GRAYSCALE) > 127
+    return _read_image_file(Path(path), cv2.IMREAD_GRAYSCALE, expected_size) > 127
 
 
 def write_mask(path: str | Path, mask: np.ndarray) -> None:

@@ -52,6 +52,7 @@ from don_gym.errors import DatasetError, DonGymError, SeveralPiecesError
 from don_gym.geometry import invert_transform
 from don_gym.io import LOCK_FILE
 from don_gym.objects import ObjectModel, load_object
+from don_gym.processes import end_with_parent
 
 __all__ = [
     "FUSION_MARGIN_M",
@@ -285,6 +286,7 @@ def _resolve_dataset(
             _check_field_fits(field, computed, config, out_dir)
         wanted = dataset_info(config, model, field if field is not None else computed)
         if recorded is not None:
+            _check_single_kind(recorded, out_dir)
             check_dataset_identity(recorded, wanted, out_dir, field, computed)
             _check_recorded_field(field, recorded, computed, out_dir)
             scenes = _recorded_scenes(recorded, out_dir)
@@ -308,6 +310,17 @@ def _resolve_dataset(
             continue
         return field
     raise DatasetError(f"{out_dir}: its dataset.json keeps changing while this build starts; try again")
+
+
+def _check_single_kind(recorded: dict[str, Any], out_dir: Path) -> None:
+    """A one-part build never adds scenes to a dataset of another kind (a bin's piles, a BOP import): their scenes
+    hold what its scenes lack (``instance/`` images) and their targets lie in another descriptor space."""
+    kind = recorded.get("scene_kind", "single")
+    if kind != "single":
+        raise DatasetError(
+            f"{out_dir}: holds a dataset of scene kind {kind!r}, not one part per scene (--scene single); pass "
+            "--overwrite to replace it or use another directory"
+        )
 
 
 def embed_part(model: ObjectModel, config: DatasetConfig, what: str | None = None) -> DescriptorField:
@@ -435,7 +448,11 @@ _Resolved = TypeVar("_Resolved")
 
 
 def join_dataset_dir(
-    out_dir: Path, config: DatasetConfig, overwrite: bool, resolve: Callable[[bool], _Resolved]
+    out_dir: Path,
+    config: DatasetConfig,
+    overwrite: bool,
+    resolve: Callable[[bool], _Resolved],
+    also_ours: tuple[str, ...] = (),
 ) -> tuple[_Resolved, DatasetLock]:
     """Create, replace (``overwrite``) or join the dataset in ``out_dir``, checked first: returns what
     ``resolve(write=True)`` returns under the metadata lock, and the lock, held shared (the caller closes it).
@@ -445,6 +462,8 @@ def join_dataset_dir(
     """
     if not overwrite:
         resolve(False)
+    else:
+        _check_replaceable(out_dir, also_ours)
     _check_renderer_available(config.renderer)
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -460,6 +479,21 @@ def join_dataset_dir(
         lock.close()
         raise
     return resolved, lock
+
+
+def _check_replaceable(out_dir: Path, also_ours: tuple[str, ...]) -> None:
+    """``--overwrite`` replaces a dataset (or the start of one, ``also_ours`` as for :func:`check_not_foreign`),
+    never a directory of someone's other files."""
+    if not out_dir.is_dir() or (out_dir / DATASET_FILE).is_file():
+        return
+    try:
+        check_not_foreign(out_dir, also_ours)
+    except DatasetError:
+        foreign = sorted(p.name for p in out_dir.iterdir())
+        raise DatasetError(
+            f"{out_dir}: is not a don_gym dataset (holds {foreign[0]!r}, no {DATASET_FILE}); --overwrite replaces a "
+            "dataset, never other files: use an empty directory or a new one"
+        ) from None
 
 
 def scene_seed(seed: int, scene_index: int) -> int:
@@ -683,8 +717,10 @@ def _children_ignore_ctrl_c() -> Iterator[None]:
         signal.signal(signal.SIGINT, previous)
 
 
-def _worker_init(open_writer: Callable[[Path, DatasetLock], BaseSceneWriter], out_dir: str) -> None:
+def _worker_init(open_writer: Callable[[Path, DatasetLock], BaseSceneWriter], out_dir: str, owner_pid: int) -> None:
     global _WORKER  # one writer per worker process, created once
+    # A build killed with kill -9 takes its workers along: none lives on holding the dataset's lock.
+    end_with_parent(owner_pid)
     # Ctrl-C reaches every process of the terminal's process group; the parent stops the pool, and a
     # worker that took it too would print a traceback of its own.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -790,7 +826,10 @@ def _write_in_workers(
     open_writer: Callable[[Path, DatasetLock], BaseSceneWriter], out_dir: Path, workers: int, todo: list[int]
 ) -> Iterator[int]:
     pool = ProcessPoolExecutor(
-        workers, mp_context=mp.get_context("spawn"), initializer=_worker_init, initargs=(open_writer, str(out_dir))
+        workers,
+        mp_context=mp.get_context("spawn"),
+        initializer=_worker_init,
+        initargs=(open_writer, str(out_dir), os.getpid()),
     )
     try:
         # Spawned workers start at the first submissions. One BLAS/OpenMP thread each: the workers already

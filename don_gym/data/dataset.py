@@ -27,6 +27,7 @@ import numpy as np
 from don_gym.errors import DatasetError
 from don_gym.geometry import CameraIntrinsics
 from don_gym.io import DirectoryLock, atomic_path, write_png, write_text_atomic
+from don_gym.processes import process_alive
 
 __all__ = [
     "DATASET_FILE",
@@ -40,6 +41,7 @@ __all__ = [
     "IDENTITY_KEYS",
     "MASK_KINDS",
     "OPTIONAL_FRAME_KINDS",
+    "PNG_SIGNATURE",
     "SCENE_FILE",
     "SCENE_KINDS",
     "DONDataset",
@@ -47,18 +49,22 @@ __all__ = [
     "SceneRecord",
     "check_dataset_identity",
     "check_dataset_info",
+    "check_png_size",
     "decode_depth_mm",
     "decode_png",
     "encode_depth_mm",
     "frame_path",
     "has_fused_depth",
     "instance_mask",
+    "new_partial_dir",
     "new_scene_tmp_dir",
     "part_differences",
+    "png_size",
     "primary_part_record",
     "publish_scene",
     "read_frame_image",
     "read_json",
+    "remove_dead_partial_dirs",
     "remove_stale_scene_dirs",
     "scene_dir",
     "scene_is_complete",
@@ -148,11 +154,38 @@ def decode_png(data: bytes, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray | N
         cv2.utils.logging.setLogLevel(level)
 
 
-def _read_png(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
+#: The first bytes of every PNG file.
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def png_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) in pixels that PNG bytes ``data`` declare in their header (the IHDR chunk, bytes 16-24),
+    read without decoding a pixel; None for bytes that do not begin as a PNG."""
+    if len(data) < 24 or data[:8] != PNG_SIGNATURE or data[12:16] != b"IHDR":
+        return None
+    return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+
+
+def check_png_size(data: bytes, size: tuple[int, int], path: Path) -> None:
+    """DatasetError naming ``path`` unless PNG bytes ``data`` declare ``size`` (width, height) in their header:
+    a frame of another size is refused before it is decoded (a header may declare 16000x12000 in 0.5 MB)."""
+    declared = png_size(data)
+    if declared is None:
+        raise DatasetError(f"{path}: unreadable image (empty, truncated or not a PNG)")
+    if tuple(declared) != tuple(size):
+        raise DatasetError(
+            f"{path}: a {declared[0]}x{declared[1]} image (its PNG header); expected {size[0]}x{size[1]}, the size of "
+            "its scene's frames; the file was replaced or damaged (rebuild the scene: delete it and resume)"
+        )
+
+
+def _read_png(path: Path, flags: int = cv2.IMREAD_UNCHANGED, size: tuple[int, int] | None = None) -> np.ndarray:
     try:
         data = path.read_bytes()
     except OSError as exc:
         raise DatasetError(f"{path}: missing or unreadable image ({exc.strerror or exc})") from None
+    if size is not None:
+        check_png_size(data, size, path)
     image = decode_png(data, flags)
     if image is None:
         raise DatasetError(f"{path}: unreadable image (empty, truncated or not a PNG)")
@@ -188,30 +221,39 @@ def write_frame(scene_path: Path, frame_index: int, images: Mapping[str, np.ndar
                 np.save(tmp, np.asarray(image, dtype=np.float16))
 
 
-def read_frame_image(scene_path: Path, kind: str, frame_index: int, descriptor_dim: int = 3) -> np.ndarray:
+def read_frame_image(
+    scene_path: Path, kind: str, frame_index: int, descriptor_dim: int = 3, size: tuple[int, int] | None = None
+) -> np.ndarray:
     """Inverse of :func:`write_frame` for one kind: RGB uint8, depth float32 metres,
-    masks bool, descriptor float32 (H, W, D)."""
+    masks bool, descriptor float32 (H, W, D). ``size`` (width, height): the frame's size; a file that
+    declares another is refused (DatasetError naming it) before it is decoded."""
     path = frame_path(scene_path, kind, frame_index, descriptor_dim)
     if kind == "rgb":
-        return cv2.cvtColor(_read_png(path, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        return cv2.cvtColor(_read_png(path, cv2.IMREAD_COLOR, size), cv2.COLOR_BGR2RGB)
     if kind in DEPTH_KINDS:
-        return decode_depth_mm(_read_png(path))
+        return decode_depth_mm(_read_png(path, size=size))
     if kind in MASK_KINDS:
-        return _read_png(path, cv2.IMREAD_GRAYSCALE) > 127
+        return _read_png(path, cv2.IMREAD_GRAYSCALE, size) > 127
     if kind == "instance":
         if not path.is_file():
             raise DatasetError(
                 f"{path}: missing; this scene stores no instance image (a single-part scene: its mask is instance 1; "
                 "use don_gym.data.dataset.instance_mask)"
             )
-        return _read_png(path, cv2.IMREAD_UNCHANGED).astype(np.int32)
+        return _read_png(path, cv2.IMREAD_UNCHANGED, size).astype(np.int32)
     if kind == "descriptor":
         if descriptor_dim == 3:
-            return _read_png(path)[..., ::-1].astype(np.float32) / 65535.0
+            return _read_png(path, size=size)[..., ::-1].astype(np.float32) / 65535.0
         try:
-            return np.load(path).astype(np.float32)
+            stored = np.load(path, mmap_mode="r")  # the header alone until the shape is checked
         except (OSError, ValueError) as exc:
             raise DatasetError(f"{path}: missing or unreadable descriptor target ({exc})") from exc
+        if size is not None and tuple(stored.shape) != (size[1], size[0], descriptor_dim):
+            raise DatasetError(
+                f"{path}: a descriptor target of shape {tuple(stored.shape)}; expected "
+                f"{(size[1], size[0], descriptor_dim)} (height, width, --dim)"
+            )
+        return np.array(stored, dtype=np.float32)
     raise ValueError(f"unknown frame kind {kind!r}; expected one of {FRAME_KINDS + OPTIONAL_FRAME_KINDS}")
 
 
@@ -335,14 +377,37 @@ def scene_is_complete(path: Path) -> bool:
 
 def new_scene_tmp_dir(root: Path, scene_index: int) -> Path:
     """A fresh hidden directory next to the scene's final one, named after this host and process."""
-    final = scene_dir(root, scene_index)
+    return new_partial_dir(scene_dir(root, scene_index))
+
+
+def new_partial_dir(final: Path, kind: str = "partial") -> Path:
+    """A fresh hidden directory beside ``final`` (``.NAME.partial-HOST-PID-XXXX``) to write it in, then rename
+    (``kind`` ``"stale"``: to move an old ``final`` aside onto, then remove): named after this host and process,
+    so that :func:`remove_dead_partial_dirs` knows when its writer is gone."""
     final.parent.mkdir(parents=True, exist_ok=True)
-    path = Path(tempfile.mkdtemp(prefix=f".{final.name}.partial-{_HOST}-{os.getpid()}-", dir=final.parent))
-    # mkdtemp makes it owner-only; the scene keeps these permissions, and others may read the dataset.
+    path = Path(tempfile.mkdtemp(prefix=f".{final.name}.{kind}-{_HOST}-{os.getpid()}-", dir=final.parent))
+    # mkdtemp makes it owner-only; the result keeps these permissions, and others may read it.
     umask = os.umask(0)
     os.umask(umask)
     path.chmod(0o777 & ~umask)
     return path
+
+
+def remove_dead_partial_dirs(final: Path, kinds: tuple[str, ...] = ("partial",)) -> list[Path]:
+    """Remove the hidden directories beside ``final`` that processes of this host, now dead, were writing
+    (:func:`new_partial_dir`; ``kinds`` ``"partial"`` and ``"stale"``); returns them. A directory of a live process
+    or of another host (whose writer may be alive) is left alone, as is any name of another pattern."""
+    removed = []
+    if not final.parent.is_dir():
+        return removed
+    for kind in kinds:
+        prefix = f".{final.name}.{kind}-{_HOST}-"
+        for path in final.parent.iterdir():
+            pid = path.name[len(prefix) :].split("-")[0] if path.name.startswith(prefix) else ""
+            if pid.isdigit() and path.is_dir() and not path.is_symlink() and not process_alive(int(pid)):
+                shutil.rmtree(path, ignore_errors=True)
+                removed.append(path)
+    return removed
 
 
 def publish_scene(tmp: Path, final: Path) -> bool:
@@ -372,24 +437,7 @@ def remove_stale_scene_dirs(root: Path, scene_index: int) -> None:
     Call it holding the scene's lock: no live process of this machine is then writing the scene.
     Directories of other hosts are left alone (their writers may be alive; readers ignore them).
     """
-    final = scene_dir(root, scene_index)
-    for kind in ("partial", "stale"):
-        for path in final.parent.glob(f".{final.name}.{kind}-{_HOST}-*"):
-            pid = path.name[len(f".{final.name}.{kind}-{_HOST}-") :].split("-")[0]
-            if pid.isdigit() and not _process_alive(int(pid)):
-                shutil.rmtree(path, ignore_errors=True)
-
-
-def _process_alive(pid: int) -> bool:
-    if pid == os.getpid():
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # alive, someone else's
-        return True
-    return True
+    remove_dead_partial_dirs(scene_dir(root, scene_index), ("partial", "stale"))
 
 
 class DatasetLock(DirectoryLock):
@@ -548,7 +596,11 @@ class DONDataset:
         return [(s, f) for s, scene in enumerate(self.scenes) for f in range(scene.num_frames)]
 
     def image(self, scene: int, frame: int, kind: str) -> np.ndarray:
-        return read_frame_image(self.scenes[scene].path, kind, frame, self.descriptor_dim)
+        """Frame ``frame`` of scene position ``scene`` as ``kind`` (:func:`read_frame_image`): a file whose header
+        declares another size than the scene's camera is refused, naming it, before it is decoded."""
+        record = self.scenes[scene]
+        size = (record.intrinsics.width, record.intrinsics.height)
+        return read_frame_image(record.path, kind, frame, self.descriptor_dim, size)
 
     def descriptor_field(self):  # -> DescriptorField; imported lazily to keep this module light
         from don_gym.descriptors import DescriptorField

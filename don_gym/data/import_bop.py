@@ -16,7 +16,6 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
-import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +30,8 @@ from don_gym.data.dataset import (
     FORMAT_NAME,
     FORMAT_VERSION,
     SCENE_FILE,
+    new_partial_dir,
+    remove_dead_partial_dirs,
     scene_dir,
     write_frame,
     write_json,
@@ -316,8 +317,9 @@ def import_bop(
     say = progress or (lambda _line: None)
 
     made = [p for p in (out.parent, *out.parent.parents) if not p.exists()]
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    # Half-written copies of imports killed on this machine (kill -9, out of memory) go before a new one starts.
+    stale = remove_dead_partial_dirs(out, ("partial", "stale"))
+    tmp = new_partial_dir(out)
     try:
         name = f"obj_{obj_id:06d}"
         shutil.copyfile(model_path(root, obj_id, models_dir), tmp / f"{name}.ply")
@@ -332,7 +334,13 @@ def import_bop(
         disagreements = symmetry_disagreements(
             model.mesh, field_.vertex_descriptors, models_info.get(obj_id, {}), np.random.default_rng(0)
         )
-        notes = []
+        notes = [f"removed {len(stale)} half-written copies left beside {out} by killed imports"] if stale else []
+        legacy = _legacy_partial_dirs(out)
+        if legacy:
+            notes.append(
+                f"{len(legacy)} hidden copies beside {out} ({legacy[0].name}...) were left by imports of an older "
+                "don_gym, whose writer this one cannot tell alive or dead: remove them by hand if no import runs"
+            )
         if disagreements:
             notes.append(
                 f"object {obj_id}: its BOP symmetries (models_info.json) disagree with the descriptor field's: "
@@ -353,7 +361,7 @@ def import_bop(
                 continue
             path = scene_dir(tmp, scene_index)
             path.mkdir(parents=True)
-            meta = _write_scene(path, members, obj_id, name, part_renderer, depth_renderers, descriptor_dim)
+            meta = _write_scene(path, members, obj_id, name, part_renderer, depth_renderers, descriptor_dim, image_size)
             size = (meta["intrinsics"].width, meta["intrinsics"].height)
             if image_size is not None and size != image_size:
                 raise DatasetError(
@@ -430,9 +438,13 @@ def import_bop(
                 },
             },
         )
-        if out.exists():
-            shutil.rmtree(out)
-        os.rename(tmp, out)
+        if out.exists():  # --overwrite: the old dataset moved aside in one rename, removed once the new one is in
+            replaced = new_partial_dir(out, kind="stale")
+            os.rename(out, replaced)
+            os.rename(tmp, out)
+            shutil.rmtree(replaced, ignore_errors=True)
+        else:
+            os.rename(tmp, out)
         made = []
     finally:
         if tmp.exists():
@@ -443,6 +455,17 @@ def import_bop(
     return BopImportResult(out, scene_index, frames, notes)
 
 
+def _legacy_partial_dirs(out: Path) -> list[Path]:
+    """Hidden copies beside ``out`` named as imports before don_gym recorded host and pid wrote them
+    (``.NAME.partial-`` and eight random characters)."""
+    prefix = f".{out.name}.partial-"
+    return sorted(
+        p
+        for p in out.parent.iterdir()
+        if p.name.startswith(prefix) and len(p.name) == len(prefix) + 8 and "-" not in p.name[len(prefix) :]
+    )
+
+
 def _write_scene(
     path: Path,
     members: list[_Image],
@@ -451,18 +474,17 @@ def _write_scene(
     part_renderer,
     depth_renderers: dict,
     descriptor_dim: int,
+    image_size: tuple[int, int] | None,
 ) -> dict[str, Any]:
-    """Write the frames of one don_gym scene; returns the per-scene metadata they determine."""
+    """Write the frames of one don_gym scene; returns the per-scene metadata they determine. ``image_size``
+    (width, height): the size of the images imported before, which every image's header must declare."""
     T_camera_object, T_world_camera, reference, instance_ids = [], [], [], set()
     intrinsics = None
     for f, image in enumerate(members):
-        rgb = bop.read_color_image(image.rgb_path)
+        rgb = bop.read_color_image(image.rgb_path, image_size)
         height, width = rgb.shape[:2]
-        depth_m = bop.read_depth_mm(image.depth_path, image.camera["depth_scale"]) / 1000.0
-        if depth_m.shape != (height, width):
-            raise DatasetError(
-                f"{image.depth_path}: {depth_m.shape[1]}x{depth_m.shape[0]} pixels, its colour image {width}x{height}"
-            )
+        image_size = (width, height)
+        depth_m = bop.read_depth_mm(image.depth_path, image.camera["depth_scale"], image_size) / 1000.0
         intrinsics = _intrinsics(image, width, height)
         # Every annotated object rendered: nearest surface per pixel decides what is visible.
         nearest = np.full((height, width), np.inf)
@@ -482,11 +504,7 @@ def _write_scene(
                 continue
             instance_id = gt_id + 1
             visib_path = bop.mask_path(image.rgb_path.parent.parent, "mask_visib", image.im_id, gt_id)
-            visible = bop.read_mask(visib_path) if visib_path.is_file() else owner == gt_id
-            if visible.shape != (height, width):
-                raise DatasetError(
-                    f"{visib_path}: {visible.shape[1]}x{visible.shape[0]} pixels, expected {width}x{height}"
-                )
+            visible = bop.read_mask(visib_path, image_size) if visib_path.is_file() else owner == gt_id
             T = _pose_m(annotation)
             target = part_renderer.render(intrinsics, T, visible_mask=visible)
             descriptor[target.object_mask] = target.descriptor_image[target.object_mask]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 from collections.abc import Sequence
 from typing import Any
 
@@ -13,11 +14,15 @@ __all__ = ["run_tasks"]
 _RUNNER: Any = None
 
 
-def _worker_init(runner_type: type, config: Any, device: str) -> None:
+def _worker_init(runner_type: type, config: Any, device: str, owner_pid: int) -> None:
     global _RUNNER  # one runner per worker process, kept for all its tasks
     import signal
 
     import torch
+
+    from don_gym.processes import end_with_parent
+
+    end_with_parent(owner_pid)  # a benchmark killed with kill -9 takes its workers along
 
     # Ctrl-C reaches every process of the terminal's process group; the parent stops the pool, and a
     # worker that took it too would print a traceback of its own.
@@ -61,9 +66,10 @@ def run_tasks(
             from don_gym.data.build import single_threaded_children
 
             context = mp.get_context("spawn")
+            initargs = (runner_type, config, device, os.getpid())
             with (
                 single_threaded_children(),
-                context.Pool(workers, initializer=_worker_init, initargs=(runner_type, config, device)) as pool,
+                context.Pool(workers, initializer=_worker_init, initargs=initargs) as pool,
             ):
                 for index, record in pool.imap_unordered(_worker_run, list(enumerate(tasks))):
                     records[index] = record

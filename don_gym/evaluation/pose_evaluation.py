@@ -149,10 +149,14 @@ REFERENCE_VIEWS = 2
 
 
 def _reference_frames(data: DONDataset, count: int = REFERENCE_VIEWS) -> list[int]:
-    """Frames of the first scene showing most of the part, at most ``count`` and at least one fewer than
-    the scene has (one is left to score)."""
+    """Frames of the first scene showing most of the part's reference instance (the one :func:`_primary_pose`
+    takes; in a pile, an instance of the primary part, not the pile), at most ``count`` and at least one fewer
+    than the scene has (one is left to score)."""
     record = data.scenes[0]
-    sizes = [int(np.count_nonzero(data.image(0, f, "mask"))) for f in range(record.num_frames)]
+    sizes = []
+    for f in range(record.num_frames):
+        poses = _part_poses(data, record, f)
+        sizes.append(int(np.count_nonzero(instance_mask(data, 0, f) == min(poses))) if poses else 0)
     keep = max(1, min(count, record.num_frames - 1))
     return sorted(int(f) for f in np.argsort(sizes)[::-1][:keep])
 

@@ -107,6 +107,12 @@ def start_process_group(launch: LaunchEnvironment, backend: str, device: torch.d
     missing = [name for name in ("MASTER_ADDR", "MASTER_PORT") if name not in os.environ]
     if missing:
         raise DonGymError(f"WORLD_SIZE is set but {' and '.join(missing)} not; launch with torchrun, which sets both")
+    if "TORCHELASTIC_RUN_ID" in os.environ:
+        from don_gym.processes import end_with_parent
+
+        # torchrun starts every process in a session of its own: killed with kill -9, it would leave them
+        # training (rank 0 holding the run directory's lock) until a collective timed out.
+        end_with_parent(os.getppid(), parent_death_signal=False)
     options: dict[str, Any] = {"timeout": COLLECTIVE_TIMEOUT}
     if device.type == "cuda":
         options["device_id"] = device

@@ -8,8 +8,10 @@
 
 from __future__ import annotations
 
+import functools
 import multiprocessing
 import multiprocessing.context
+import os
 from typing import Any
 
 import numpy as np
@@ -365,10 +367,16 @@ class StepBatches(Dataset):
         return {"rgb_a": torch.stack(rgb_a), "rgb_b": torch.stack(rgb_b), "correspondences": correspondences}
 
 
-def _init_loader_worker(worker_id: int) -> None:
+def _init_loader_worker(owner_pid: int, worker_id: int) -> None:
+    import cv2
+
+    from don_gym.processes import end_with_parent
+
+    # The worker's parent is the fork server: watch the trainer itself, so that a trainer killed with
+    # kill -9 takes its workers along (each holds a batch or two of images).
+    end_with_parent(owner_pid)
     # Each worker builds whole batches on its own; threads inside a worker would only compete
     # with the other workers and the training process for the same cores.
-    import cv2
 
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
@@ -399,7 +407,7 @@ def step_loader(batches: StepBatches, first_step: int, workers: int, pin_memory:
         num_workers=workers,
         collate_fn=_as_is,
         pin_memory=pin_memory,
-        worker_init_fn=_init_loader_worker if workers else None,
+        worker_init_fn=functools.partial(_init_loader_worker, os.getpid()) if workers else None,
         multiprocessing_context=_worker_context() if workers else None,
         prefetch_factor=2 if workers else None,
     )
