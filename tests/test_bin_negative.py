@@ -105,6 +105,24 @@ def test_a_neighbour_inside_the_fingers_footprint_leaves_no_room(grasp_env) -> N
     # Beyond the fingers' half width along the axis (the toolcap ends before) it is clear again.
     _lay(second, BIN_CENTER_XY_M + np.array([-0.04 + 0.09, -0.03 + span - 0.005]))
     assert env.task.grasp_is_clear(first)
+    # Under the finger but lower than the fingertips reach (the first on top of the pile): room again.
+    _lay(second, BIN_CENTER_XY_M + np.array([-0.04, -0.03 + span - 0.005]))
+    _lay(first, BIN_CENTER_XY_M + np.array([-0.04, -0.03]), lift_m=0.04)
+    assert env.task.grasp_is_clear(first)
+
+
+def test_the_oracle_prefers_a_target_with_room_to_a_higher_crowded_one(grasp_env) -> None:
+    env = grasp_env
+    env.reset(seed=100)
+    first, second, shaft = env.task.instances
+    span = pregrasp_width_m(first.model) / 2 + FINGER_OUTSIDE_PAD_M
+    # The first lies 1 cm higher, but the shaft lies under one of its fingers; the second has room.
+    _lay(first, BIN_CENTER_XY_M + np.array([-0.04, -0.06]), lift_m=0.01)
+    _lay(shaft, BIN_CENTER_XY_M + np.array([-0.04, -0.06 + span - 0.005]))
+    _lay(second, BIN_CENTER_XY_M + np.array([0.06, 0.08]))
+    assert not env.task.grasp_is_clear(first) and env.task.grasp_is_clear(second)
+    assert env.task.top_instance("toolcap") is second
+    np.testing.assert_array_equal(env.oracle_action(), env.oracle_action(instance=second.instance_id))
 
 
 def test_the_target_is_aimed_at_not_a_nearer_non_target(grasp_env) -> None:
