@@ -165,3 +165,47 @@ def test_the_oracle_agent_aims_only_at_visible_targets() -> None:
         assert aimed.part == "toolcap" and aimed.instance_id in visible
     finally:
         env.close()
+
+
+class _AxisGrasper:
+    """An agent that grasps the env's top target across its axis, the +axis reversed with ``flip``."""
+
+    def __init__(self, env, flip: bool) -> None:
+        self.env, self.flip = env, flip
+        self.last_ranking: list = []
+
+    def reset(self) -> None:
+        pass
+
+    def act(self, obs, info):
+        from types import SimpleNamespace
+
+        self.last_ranking = [SimpleNamespace(kind="across")]
+        return self.env.oracle_action(flip=self.flip)
+
+    def observe_outcome(self, outcome: str) -> None:
+        pass
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_a_lift_with_the_axis_reversed_is_counted_flipped(flip: bool) -> None:
+    from don_gym.evaluation.bin_benchmark import run_pile
+
+    env = gym.make("DONBinPick-v0", parts={"toolcap": 1}, image_size=None, sensor="ideal").unwrapped
+    try:
+        # A pile whose toolcap leaves room to grasp (the physics is not under test) and whose +axis points
+        # between -y and +x, well off the diagonals: a yaw measured from a mixed-up axis would be told apart.
+        for seed in range(129, 165):  # 129 is the first from 105 that qualifies
+            env.reset(seed=seed)
+            toolcap = env.task.top_instance("toolcap")
+            axis = toolcap.body.T_world_object[:3, :3] @ toolcap.model.plus_axis
+            yaw = float(np.arctan2(axis[1], axis[0]))
+            if env.task.grasp_is_clear(toolcap) and -np.pi / 2 + 0.3 < yaw < -0.3:
+                break
+        else:
+            raise AssertionError("no pile with room and an axis between -y and +x among seeds 129-164")
+        record = run_pile(env, _AxisGrasper(env, flip), "axis", 0, seed)
+        assert record["picks"] + record["grasp_only"] == 1 and record["target_axis_lifts"] == 1, record
+        assert record["flipped"] == int(flip) and record["seed"] == seed and record["cleared"]
+    finally:
+        env.close()
