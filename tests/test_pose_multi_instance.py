@@ -254,3 +254,18 @@ def test_an_estimate_on_another_parts_instance_is_not_a_pose_of_the_part(tmp_pat
     shaft_camera = np.stack([np.linalg.inv(record.T_world_camera[f]) @ poses["shaft"] for f in on_other.frame])
     assert (np.linalg.norm(on_other.T_camera_object[:, :3, 3] - shaft_camera[:, :3, 3], axis=1) < 0.01).all()
     assert (on_other.mssd_m > 0.3 * diameter).all(), on_other.mssd_m
+
+
+def test_pooled_datasets_keep_their_scenes_apart_in_the_results(hidden_scene, two_toolcaps, tmp_path: Path) -> None:
+    from don_gym.evaluation.pose_evaluation import SCENE_ID_STRIDE, write_pose_outputs
+
+    result = evaluate_pose([hidden_scene[0], two_toolcaps[0]], ["oracle"], depths=("ideal",), progress=False)["ideal"]
+    e = result.estimates["oracle"]
+    assert set(e.dataset) == {0, 1}
+    np.testing.assert_array_equal(e.scene_id, SCENE_ID_STRIDE * e.dataset + e.scene)
+    paths = write_pose_outputs(result, tmp_path)
+    rows = bop.read_pose_results(paths["csv:oracle"])
+    assert {(r["scene_id"], r["im_id"]) for r in rows} == {
+        (int(s), int(f)) for s, f, ok in zip(e.scene_id, e.frame, e.found, strict=True) if ok
+    }
+    assert len({r["scene_id"] for r in rows}) == 2
