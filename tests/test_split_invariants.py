@@ -146,3 +146,12 @@ def test_bench_bin_runs_the_test_split_unless_told_otherwise(argv, split, monkey
     monkeypatch.setattr(sys, "argv", ["bench_bin.py", *argv])
     bench_bin.main()
     assert seen == [("clearing", split), ("tracking", split)]
+
+
+def test_the_reliability_section_on_these_names_tests_that_exist() -> None:
+    text = (ROOT / "docs" / "reliability.md").read_text()
+    section = text.split("## Held-out split, rates, several instances and parts", 1)[1].split("\n## ", 1)[0]
+    named = re.findall(r"`(tests/[\w/]+\.py)::(test_\w+)`", section)
+    assert len(named) >= 25
+    for path, name in named:
+        assert re.search(rf"^def {name}\(", (ROOT / path).read_text(), flags=re.MULTILINE), f"{path}::{name}"
