@@ -71,6 +71,10 @@ PAD_CLEARANCE_M = 0.008
 FINGER_OUTSIDE_PAD_M = 0.025
 FINGER_HALF_WIDTH_M = 0.016
 FINGER_BELOW_GRASP_M = 0.011
+#: A neighbour's convex hull is tested against the fingers' footprint at its vertices and at points this far
+#: apart (m) along its edges: well under the footprint's width along the axis (2 x FINGER_HALF_WIDTH_M), so a
+#: neighbour whose body crosses the footprint between its end rings is never missed.
+HULL_EDGE_SPACING_M = 0.004
 #: Cleared instances rest on a static shelf far from the scene (out of every camera's view); removing
 #: bodies would break the client's snapshot, which every reset restores.
 SHELF_CENTER_M = np.array([30.0, 30.0, -5.0])
@@ -105,6 +109,21 @@ def pregrasp_width_m(model: ObjectModel) -> float:
 def longest_part_m() -> float:
     """The longest part (m) the bin takes: one that lies across its narrow side with room at both walls."""
     return min(BIN_INNER_SIZE_M) - 2 * DROP_WALL_MARGIN_M
+
+
+def hull_outline_points(model: ObjectModel, spacing_m: float = HULL_EDGE_SPACING_M) -> np.ndarray:
+    """(N, 3) object-frame points (m) of a part's convex hull: its vertices and points at most ``spacing_m``
+    apart along each of its edges. A round part's hull vertices sit on a few rings, centimetres apart along its
+    axis; the edges between them carry the hull's sides."""
+    hull = model.mesh.convex_hull
+    vertices = np.asarray(hull.vertices, dtype=np.float64)
+    points = [vertices]
+    for a, b in np.asarray(hull.edges_unique):
+        steps = int(np.ceil(np.linalg.norm(vertices[b] - vertices[a]) / spacing_m))
+        if steps > 1:
+            t = np.arange(1, steps)[:, None] / steps
+            points.append(vertices[a] + t * (vertices[b] - vertices[a]))
+    return np.concatenate(points)
 
 
 def check_bin_parts(counts: Mapping[str, int], models: Mapping[str, ObjectModel]) -> None:
@@ -195,7 +214,7 @@ class BinPickTask(PickPlaceTask):
             grasp_points_object = {name: grasp_point_object(model) for name, model in self.models.items()}
         #: Part name -> (3,) object-frame grasp point (:func:`~don_gym.sim.task.grasp_point_object`), metres.
         self.grasp_points_object = {name: np.asarray(grasp_points_object[name]) for name in self.models}
-        self._hull_vertices = {name: np.asarray(m.mesh.convex_hull.vertices) for name, m in self.models.items()}
+        self._hull_points = {name: hull_outline_points(m) for name, m in self.models.items()}
         self._focus = next(i for i in self.instances if i.part == target)
         self._gripper: tuple[int, tuple[int, int]] | None = None
         for instance in self.instances:
@@ -320,7 +339,7 @@ class BinPickTask(PickPlaceTask):
             if other is instance:
                 continue
             T_other = other.body.T_world_object
-            vertices = self._hull_vertices[other.part] @ T_other[:3, :3].T + T_other[:3, 3]
+            vertices = self._hull_points[other.part] @ T_other[:3, :3].T + T_other[:3, 3]
             relative = vertices[:, :2] - point[:2]
             blocked = (
                 (np.abs(relative @ along) <= FINGER_HALF_WIDTH_M)
