@@ -292,3 +292,46 @@ def test_bad_reset_options_and_oracle_instance(env):
     env.reset(seed=100)
     with pytest.raises(DonGymError, match=r"instance=99: expected an instance id 0..4"):
         env.oracle_action(instance=99)
+
+
+def _along_action(env: BinPickEnv, instance: int, flip: bool = False) -> np.ndarray:
+    """An oracle grasp along instance ``instance``'s axis: the middle of its end faces, its +axis yaw (plus pi if
+    ``flip``), kind 1 ("along")."""
+    from don_gym.sim.script import GRASP_KINDS, end_faces_axial_position_m
+
+    chosen = env.task.instances[instance]
+    T = chosen.body.T_world_object
+    model = chosen.model
+    middle = transform_points(T, (model.center_of_mass + end_faces_axial_position_m(model) * model.plus_axis)[None])[0]
+    yaw = float(env.oracle_action(instance=instance, flip=flip)[3])
+    return np.array([*middle, yaw, GRASP_KINDS.index("along")], dtype=np.float32)
+
+
+def test_a_grasp_along_the_axis_is_placed_and_a_reversed_axis_still_lands_reversed():
+    env = BinPickEnv(parts={"toolcap": 1}, image_size=None, sensor="ideal")
+    try:
+        assert env.action_space.shape == (5,) and env.action_space.high[4] == 2.0
+        results = {}
+        for flip in (False, True):
+            env.reset(seed=101)
+            _, reward, _, _, info = env.step(_along_action(env, 0, flip))
+            results[flip] = info
+        assert results[False]["grasp_kind"] == "along"
+        assert results[False]["outcome"] == "grasp_and_place", results[False]["placement_axis_error_rad"]
+        # Perception decides: the axis taken the wrong way round is placed the wrong way round.
+        assert results[True]["outcome"] == "grasp_only"
+        assert results[True]["placement_axis_error_rad"] > np.deg2rad(150)
+    finally:
+        env.close()
+
+
+def test_a_four_number_action_is_an_across_grasp_and_a_bad_kind_is_one_line(env):
+    env.reset(seed=100)
+    np.testing.assert_array_equal(env._with_grasp_kind(EMPTY_GRASP), [*EMPTY_GRASP, 0.0])
+    for kind in (3.0, -1.0, np.nan):
+        with pytest.raises(DonGymError, match=r"action\[4\]=.* \(grasp kind\): expected the index of one of") as error:
+            env.step(np.array([*EMPTY_GRASP, kind], dtype=np.float32))
+        assert "\n" not in str(error.value)
+    _, _, _, _, info = env.step(EMPTY_GRASP)
+    assert info["outcome"] == "fail" and info["grasp_kind"] == "across"
+    assert info["sim_time_s"] > 0 and info["observation_move_s"] > 0

@@ -31,7 +31,7 @@ from don_gym.sim.env import (
     is_integer,
 )
 from don_gym.sim.robot import FINGER_JOINTS, Panda, wrap_angle
-from don_gym.sim.script import GraspPlaceScript
+from don_gym.sim.script import FREE_SPEED_M_S, GRASP_KINDS, GraspPlaceScript, move_duration_s
 from don_gym.sim.sensor import sample_calibration_error
 from don_gym.sim.task import OBSERVATION_YAW_RAD, observation_camera_position
 
@@ -106,11 +106,15 @@ class BinPickEnv(PickPlaceEnv):
     renderers and backgrounds are those of the pick env.
 
     ## Action Space
-    - ``control="grasp"`` (one pick attempt per step): ``Box(4)`` ``[x, y, z, yaw]``, the grasp point in the
-      world (m) and the world yaw (rad) of the +axis of the part the agent means to pick, as in the pick env.
-      The scripted program (:class:`~don_gym.sim.script.GraspPlaceScript`) grasps there across the axis and,
-      if something is lifted, carries it to the cradle and places it (offset by the grasp point's axial position
-      on the part nearest to the grasp point). The arm then returns to the observation pose.
+    - ``control="grasp"`` (one pick attempt per step): ``Box(5)`` ``[x, y, z, yaw, kind]``, the grasp point in
+      the world (m), the world yaw (rad) of the +axis of the part the agent means to pick, as in the pick env,
+      and the grasp kind: the index (rounded) of one of :data:`~don_gym.sim.script.GRASP_KINDS`, 0 "across"
+      the axis, 1 "along" it (the fingers on the end faces), 2 "standing" (across a part standing on an end).
+      A 4-number action is an "across" grasp. The scripted program
+      (:class:`~don_gym.sim.script.GraspPlaceScript`) grasps there (the fingers closing across the believed
+      axis, or along it) and, if something is lifted, carries it to the cradle and places it, the believed axis
+      turned onto the cradle's direction and the point held offset by its axial position on the part (the grasp
+      point; for "along" the middle of the end faces). The arm then returns to the observation pose.
     - ``control="ee"`` (25 Hz, for RL): ``Box(-1, 1, (5,))`` as in the pick env.
 
     ## Observation Space
@@ -154,7 +158,9 @@ class BinPickEnv(PickPlaceEnv):
     (:data:`END_REASONS` or None), ``instances`` (:meth:`instance_poses`), ``instance_segmentation`` ((H, W)
     int32 instance id per pixel of the wrist image, -1 elsewhere; None without images), ``T_world_camera``,
     ``T_camera_reportedcamera``, ``sensor``, ``renderer``, ``background``, ``backdrop``; in grasp mode after a
-    step also ``lifted``, ``placement_distance_m``, ``placement_axis_error_rad`` of the instance in focus.
+    step also ``lifted``, ``placement_distance_m``, ``placement_axis_error_rad`` of the instance in focus,
+    ``sim_time_s`` (the scripted motion's simulated seconds), ``observation_move_s`` (the seconds the move back to
+    the observation pose takes at the script's free-space speed; the arm is put there, not moved) and ``grasp_kind``.
 
     ## For agents and oracles
     - :meth:`instance_poses`: the true pose, part name, id, grasp point and visible pixel count of every
@@ -238,6 +244,8 @@ class BinPickEnv(PickPlaceEnv):
         self.task.attach_gripper(self.robot.body_id, FINGER_JOINTS)
         self.observation_arm_rad = self.robot.solve_top_down_camera(observation_camera_position(), OBSERVATION_YAW_RAD)
         self.robot.reset(self.observation_arm_rad)
+        #: TCP position (world, m) at the observation pose.
+        self._observation_tcp_m = self.robot.tcp_pose()[:3, 3].copy()
         self._set_up_backdrop(background)
         self.sim.take_snapshot()
         self._specular = {i.body.body_id: i.model.material.specular for i in self.task.instances}
@@ -332,6 +340,36 @@ class BinPickEnv(PickPlaceEnv):
         return observation, info
 
     # ------------------------------------------------------------------ step
+    def _make_action_space(self) -> gym.spaces.Box:
+        space = super()._make_action_space()
+        if self.control != "grasp":
+            return space
+        # One more element: the grasp kind's index in GRASP_KINDS (rounded to the nearest).
+        low = np.append(space.low, 0.0).astype(np.float32)
+        high = np.append(space.high, float(len(GRASP_KINDS) - 1)).astype(np.float32)
+        return gym.spaces.Box(low, high, dtype=np.float32)
+
+    def step(self, action):
+        if self.control == "grasp" and not self._episode_over:
+            action = self._with_grasp_kind(action)
+        return super().step(action)
+
+    def _with_grasp_kind(self, action: Any) -> Any:
+        """A grasp action of 4 numbers with the kind "across" appended (their meaning before the kind existed);
+        DonGymError for a kind that is not one of :data:`~don_gym.sim.script.GRASP_KINDS`' indices."""
+        try:
+            numbers = np.asarray(action, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            return action  # the parent names it
+        if numbers.shape == (4,):
+            return np.append(numbers, 0.0)
+        if numbers.shape == (5,) and not (np.isfinite(numbers[4]) and -0.5 < numbers[4] < len(GRASP_KINDS) - 0.5):
+            raise DonGymError(
+                f"action[4]={numbers[4]!r} (grasp kind): expected the index of one of {list(GRASP_KINDS)} "
+                f"(0..{len(GRASP_KINDS) - 1})"
+            )
+        return numbers
+
     def _clear_out_of_bin(self, require_rest: bool) -> list[int]:
         """Take every instance in play that is no longer in the bin out of play (``require_rest``: only once
         it is at rest and touches no finger, or has fallen off the table); their ids."""
@@ -381,14 +419,17 @@ class BinPickEnv(PickPlaceEnv):
         aimed = self.task.nearest_instance(action[:3], part=self.target)
         if aimed is not None:
             self.task.set_focus(aimed)
+        kind = GRASP_KINDS[int(round(float(action[4])))]
         script = GraspPlaceScript(self.sim, self.robot, self.task, open_width_m=self._pregrasp_width_m)
-        trace = script.run(action[:3], float(action[3]))
+        trace = script.run(action[:3], float(action[3]), kind)
         judgement = self.task.judge(trace.lifted, trace.left_workspace, self.robot.contacts(self.task))
         picked = self.task.focus if trace.lifted else None
         outcome = judgement.outcome
         if picked is not None and picked.part != self.target:
             outcome = "wrong_part"
         # The program's last move: back to the observation pose (the arm is clear above the cradle or the bin).
+        # The arm is put there; the time the move takes at the script's free-space speed is charged in info.
+        observation_move_s = self._observation_move_s()
         self.robot.reset(self.observation_arm_rad)
         self.task.settle()
         cleared = self._clear_out_of_bin(require_rest=False)
@@ -397,8 +438,17 @@ class BinPickEnv(PickPlaceEnv):
             "placement_distance_m": judgement.placement.distance_xy_m,
             "placement_axis_error_rad": judgement.placement.axis_error_rad,
             "sim_time_s": trace.sim_time_s,
+            "observation_move_s": observation_move_s,
+            "grasp_kind": kind,
         }
         return self._finish_step(outcome, picked, cleared, extra)
+
+    def _observation_move_s(self) -> float:
+        """Seconds a scripted straight move from the TCP's pose now back to the observation pose takes
+        (:func:`~don_gym.sim.script.move_duration_s` at the free-space speed)."""
+        distance = float(np.linalg.norm(self.robot.tcp_pose()[:3, 3] - self._observation_tcp_m))
+        wrist_turn = float(self.observation_arm_rad[6]) - float(self.robot.joint_positions()[6])
+        return move_duration_s(distance, wrist_turn, FREE_SPEED_M_S)
 
     def _step_ee(self, action: np.ndarray):
         self._ee_yaw_rad = self.robot.apply_ee_action(action, self._ee_yaw_rad)
