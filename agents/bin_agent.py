@@ -36,7 +36,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from don_gym.agents.axis_grasp import surface_to_axis
+from don_gym.agents.axis_grasp import AxisGraspAgent, surface_to_axis
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics, backproject_depth, transform_points
 from don_gym.learning.model import DenseObjectNet
@@ -454,10 +454,15 @@ class _BinAgentBase:
     def estimates(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None) -> list[InstanceEstimate]:
         raise NotImplementedError
 
+    def station_estimates(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None) -> list[InstanceEstimate]:
+        raise NotImplementedError
+
     def act(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None = None) -> np.ndarray:
         """The grasp-mode action (5,) float32 ``[x, y, z, yaw, kind]`` for one observation (``info``: the step's,
-        which the oracle and oracle descriptors need). DonGymError when no instance of the target part is found."""
-        estimates = self.estimates(obs, info)
+        which the oracle and oracle descriptors need, and whose ``phase`` "regrasp" says the observation shows the
+        regrasp station: :meth:`station_estimates`). DonGymError when no instance of the target part is found."""
+        at_station = info is not None and info.get("phase") == "regrasp"
+        estimates = self.station_estimates(obs, info) if at_station else self.estimates(obs, info)
         if not estimates:
             raise DonGymError(f"no instance of {self.object_model.name!r} found in the image")
         intrinsics = CameraIntrinsics.from_array(obs["camera_intrinsics"])
@@ -497,6 +502,11 @@ class BinOracleAgent(_BinAgentBase):
             local = model.center_of_mass + np.outer(self.targets.axial_positions_m, model.plus_axis)
             out.append(InstanceEstimate(transform_points(T, local), instance=int(instance["instance"])))
         return out
+
+    def station_estimates(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None) -> list[InstanceEstimate]:
+        """The true pose of the instance set down at the regrasp station (``info["regrasp_instance"]``)."""
+        wanted = None if info is None else info.get("regrasp_instance")
+        return [e for e in self.estimates(obs, info) if e.instance == wanted]
 
     def __repr__(self) -> str:
         return f"BinOracleAgent(part={self.object_model.name!r})"
@@ -556,6 +566,7 @@ class BinAxisGraspAgent(_BinAgentBase):
             np.linalg.norm(self.reference_descriptors[0] - self.reference_descriptors[1])
         )
         self.temperature = float(temperature)
+        self._station_agent: Any = None
 
     @property
     def method(self) -> str:
@@ -599,6 +610,25 @@ class BinAxisGraspAgent(_BinAgentBase):
         cloud = world_point_cloud(depth, intrinsics, T_world_camera)
         standing = standing_from_coincident_rings(points, found, cloud, self.object_model, self.targets, TABLE_TOP_Z_M)
         return [*found, *standing]
+
+    def station_estimates(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None) -> list[InstanceEstimate]:
+        """The part set down alone at the regrasp station, as the single-part axis agent
+        (:class:`~don_gym.agents.AxisGraspAgent`) sees it: its two ring keypoints in the descriptor image, moved onto
+        the axis; which end is which is decided here, by the descriptors. None found: no estimate."""
+        if self._station_agent is None:
+            self._station_agent = AxisGraspAgent.from_parts(
+                self.object_model, self.source, self.reference_descriptors, self.targets
+            )
+        descriptors = self.source.descriptor_image(obs, info)
+        points = self._station_agent.keypoints({**obs, "descriptors": descriptors})
+        if not np.all(np.isfinite(points)):
+            return []
+        camera = np.asarray(obs["camera_pose"], dtype=np.float64)[:3, 3]
+        try:
+            axis_points, _ = surface_to_axis(points, camera, self.targets.radii_m)
+        except DonGymError:
+            return []
+        return [InstanceEstimate(axis_points)]
 
     def __repr__(self) -> str:
         return f"BinAxisGraspAgent(part={self.object_model.name!r}, method={self.method!r})"

@@ -278,6 +278,12 @@ def test_bin_capacity_follows_the_floor_and_the_parts_footprints():
         ({"max_failed_attempts": 0}, r"max_failed_attempts=0: expected a positive integer"),
         ({"reward_type": "dense"}, r"reward_type='dense' is unknown"),
         ({"part_scales": {"shaft": 0.001}, "parts": {"toolcap": 1}}, r"part_scales: 'shaft' is not among the parts"),
+        ({"regrasp_station": (0.7, -0.4)}, r"regrasp_station=\(0.7, -0.4\) is out of reach: 0.81 m from the robot"),
+        ({"regrasp_station": (0.2, -0.05)}, r"regrasp_station=\(0.2, -0.05\) is out of reach"),
+        ({"regrasp_station": (0.51, 0.1)}, r"regrasp_station=\(0.51, 0.1\): its square .* overlaps the bin"),
+        ({"regrasp_station": (0.36, 0.40)}, r"regrasp_station=\(0.36, 0.4\): its square is occupied by the cradle"),
+        ({"regrasp_station": (0.45, -0.6)}, r"regrasp_station=\(0.45, -0.6\): its 0.14 m square leaves the table"),
+        ({"regrasp_station": "left"}, r"regrasp_station='left': expected None or \(x, y\)"),
     ],
 )
 def test_bad_input_is_one_line_naming_it(kwargs, expected):
@@ -335,3 +341,65 @@ def test_a_four_number_action_is_an_across_grasp_and_a_bad_kind_is_one_line(env)
     _, _, _, _, info = env.step(EMPTY_GRASP)
     assert info["outcome"] == "fail" and info["grasp_kind"] == "across"
     assert info["sim_time_s"] > 0 and info["observation_move_s"] > 0
+
+
+def _stand_up(env: BinPickEnv, instance: int, up: float = 1.0) -> None:
+    """Put an instance standing on an end (+axis up, or down for ``up=-1``) in the middle of the bin, settled."""
+    from scipy.spatial.transform import Rotation
+
+    from don_gym.geometry import make_transform
+
+    body, model = env.task.instances[instance].body, env.task.instances[instance].model
+    R = Rotation.align_vectors([[0.0, 0.0, up]], [model.plus_axis])[0].as_matrix()
+    lowest = float(((model.mesh.vertices - model.center_of_mass) @ R.T)[:, 2].min())
+    com = np.array([0.51, 0.0, TABLE_TOP_Z_M - lowest + 0.001])
+    body.set_pose(make_transform(R, com - R @ model.center_of_mass))
+    env.task.settle()
+
+
+@pytest.mark.parametrize("up", [1.0, -1.0])
+def test_a_standing_part_is_set_down_at_the_station_and_placed_after_a_regrasp_from_the_descriptor_image(up):
+    from don_gym.agents import BinAxisGraspAgent
+
+    env = BinPickEnv(parts={"toolcap": 1}, image_size=(160, 120), sensor="ideal")
+    try:
+        obs, info = env.reset(seed=102)
+        assert info["phase"] == "pick" and info["regrasp_instance"] is None
+        _stand_up(env, 0, up)
+        grasp = env.task.grasp_point_world(env.task.instances[0])
+        obs, reward, terminated, truncated, info = env.step(np.array([*grasp, 0.3, 2.0], dtype=np.float32))
+        # Tipped over the ledge: lying at the station, observed from there; half an attempt.
+        assert info["outcome"] == "set_down" and info["phase"] == "regrasp" and info["regrasp_instance"] == 0
+        assert not (terminated or truncated) and info["attempts"] == 0 and reward == 0.0
+        assert env.task.at_station(env.task.instances[0])
+        assert abs(float(env.task.instances[0].body.plus_axis_world()[2])) < 0.3
+        assert info["observation_move_s"] > 0
+        agent = BinAxisGraspAgent(env, model="oracle")
+        agent.reset()
+        action = agent.act(obs, info)
+        assert action.shape == (5,) and action[4] == 0.0  # across the axis, which end is which from the descriptors
+        _, reward, terminated, _, info = env.step(action)
+        assert info["regrasp"] and info["regrasp_outcome"] == info["outcome"] == "grasp_and_place"
+        assert reward == 1.0 and terminated and info["end_reason"] == "cleared" and info["phase"] == "pick"
+        assert info["attempts"] == 1
+    finally:
+        env.close()
+
+
+def test_a_pile_on_the_station_is_refused_in_one_line(monkeypatch):
+    from don_gym.geometry import make_transform
+    from don_gym.sim.bin_task import BinPickTask
+
+    drop = BinPickTask.drop_pile
+
+    def drop_one_on_the_station(self, rng):
+        drop(self, rng)
+        self.instances[0].body.set_pose(make_transform(translation=[*self.station_xy_m, 0.02]))
+
+    monkeypatch.setattr(BinPickTask, "drop_pile", drop_one_on_the_station)
+    env = BinPickEnv(parts={"toolcap": 1}, image_size=None)
+    try:
+        with pytest.raises(DonGymError, match=r"regrasp_station=\[0.45, -0.33\]: its area is occupied by instance"):
+            env.reset(seed=0)
+    finally:
+        env.close()

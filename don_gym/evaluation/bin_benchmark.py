@@ -234,9 +234,11 @@ def run_pile(env: Any, agent: Any, method: str, pile: int, seed: int) -> dict[st
         kind = agent.last_ranking[0].kind
         obs, _, terminated, truncated, info = env.step(action)
         agent.observe_outcome(info["outcome"])
+        motion_s += float(info["sim_time_s"]) + float(info["observation_move_s"])
+        if info["outcome"] == "set_down":
+            continue  # the attempt goes on at the regrasp station
         attempts += 1
         counts[info["outcome"]] += 1
-        motion_s += float(info["sim_time_s"]) + float(info["observation_move_s"])
         if info.get("regrasp"):
             regrasps += 1
             regrasp_placed += info["outcome"] == "grasp_and_place"

@@ -17,11 +17,18 @@ from don_gym.geometry import CameraIntrinsics
 from don_gym.objects import ObjectModel, builtin_names, load_object, part_name
 from don_gym.sim.bin_task import (
     DEFAULT_PARTS,
+    DEFAULT_STATION_XY_M,
     DEFAULT_TARGET,
+    LEDGE_OVERHANG_RADII,
+    STATION_CAMERA_HEIGHT_M,
     BinPickTask,
     Instance,
     check_bin_parts,
+    check_station,
+    lying_footprint_m,
     pregrasp_width_m,
+    station_bounds,
+    station_ledge,
 )
 from don_gym.sim.camera import decode_segmentation
 from don_gym.sim.env import (
@@ -36,8 +43,11 @@ from don_gym.sim.sensor import sample_calibration_error
 from don_gym.sim.task import OBSERVATION_YAW_RAD, observation_camera_position
 
 #: ``info["outcome"]`` of a step, worst first: nothing lifted; a target lifted but not placed in the cradle
-#: as it should be; a target placed; a part that is not the target lifted.
-BIN_OUTCOMES = ("fail", "grasp_only", "grasp_and_place", "wrong_part")
+#: as it should be; a target placed; a part that is not the target lifted; a target lifted standing and set down
+#: at the regrasp station (the attempt goes on with the next step's grasp there).
+BIN_OUTCOMES = ("fail", "grasp_only", "grasp_and_place", "wrong_part", "set_down")
+#: ``info["phase"]``: what the next action is for: a pick from the bin, or the regrasp at the station.
+PHASES = ("pick", "regrasp")
 #: ``info["end_reason"]`` once an episode is over.
 END_REASONS = ("cleared", "failed_attempts", "step_limit")
 #: Grasp mode: default step limit per instance in the pile; ee mode: per target instance.
@@ -193,6 +203,7 @@ class BinPickEnv(PickPlaceEnv):
         max_steps: int | None = None,
         max_failed_attempts: int = 3,
         background: str = "plain",
+        regrasp_station: tuple[float, float] | None = DEFAULT_STATION_XY_M,
     ):
         gym.Env.__init__(self)
         check_view_arguments(control, reward_type, ("sparse",), background, render_mode, observe_images)
@@ -202,6 +213,7 @@ class BinPickEnv(PickPlaceEnv):
             raise DonGymError(f"max_failed_attempts={max_failed_attempts!r}: expected a positive integer")
         image_size = self._set_camera_options(image_size, render_size, sensor, renderer)
         self.models, self.counts, self.target = resolve_parts(parts, target, part_scales)
+        self.station_xy_m = None if regrasp_station is None else check_station(regrasp_station)
         self.control = control
         self.reward_type = reward_type
         self.render_mode = render_mode
@@ -226,6 +238,8 @@ class BinPickEnv(PickPlaceEnv):
         self._steps = 0
         self._failed_in_a_row = 0
         self._ee_yaw_rad = 0.0
+        self._phase = "pick"
+        self._regrasp_instance: Instance | None = None
 
     # ------------------------------------------------------------- the world
     def _build_world(self, renderer: str, background: str) -> None:
@@ -239,6 +253,7 @@ class BinPickEnv(PickPlaceEnv):
             self.counts,
             self.target,
             grasp_points_object=None if known is None else known.grasp_points_object,
+            station_xy_m=self.station_xy_m,
         )
         self.robot = Panda(self.sim)
         self.task.attach_gripper(self.robot.body_id, FINGER_JOINTS)
@@ -246,6 +261,14 @@ class BinPickEnv(PickPlaceEnv):
         self.robot.reset(self.observation_arm_rad)
         #: TCP position (world, m) at the observation pose.
         self._observation_tcp_m = self.robot.tcp_pose()[:3, 3].copy()
+        if self.station_xy_m is not None:
+            # The second observation pose: the wrist camera over the ledge's foot, where a part set down lies.
+            _, edge, away = station_ledge(self.station_xy_m)
+            camera = np.array([*(edge + 0.03 * away), STATION_CAMERA_HEIGHT_M])
+            self.station_arm_rad = self.robot.solve_top_down_camera(camera, OBSERVATION_YAW_RAD)
+            self.robot.reset(self.station_arm_rad)
+            self._station_tcp_m = self.robot.tcp_pose()[:3, 3].copy()
+            self.robot.reset(self.observation_arm_rad)
         self._set_up_backdrop(background)
         self.sim.take_snapshot()
         self._specular = {i.body.body_id: i.model.material.specular for i in self.task.instances}
@@ -308,6 +331,8 @@ class BinPickEnv(PickPlaceEnv):
             "failed_in_a_row": self._failed_in_a_row,
             "instances": self.instance_poses(),
             "instance_segmentation": self.instance_segmentation(),
+            "phase": self._phase,
+            "regrasp_instance": None if self._regrasp_instance is None else self._regrasp_instance.instance_id,
         }
 
     # ----------------------------------------------------------------- reset
@@ -322,6 +347,9 @@ class BinPickEnv(PickPlaceEnv):
         self._world_used = True
         self._restore_snapshot()
         self.task.drop_pile(self.np_random)
+        if self.station_xy_m is not None:
+            self.task.check_station_free()
+        self._phase, self._regrasp_instance = "pick", None
         self._T_camera_reportedcamera = sample_calibration_error(self.sensor, self.np_random)
         self._episode_over = False
         self._steps = 0
@@ -344,9 +372,13 @@ class BinPickEnv(PickPlaceEnv):
         space = super()._make_action_space()
         if self.control != "grasp":
             return space
+        low, high = space.low.copy(), space.high.copy()
+        if self.station_xy_m is not None:  # grasps at the regrasp station too
+            x0, x1, y0, y1 = station_bounds(self.station_xy_m)
+            low[:2], high[:2] = np.minimum(low[:2], [x0, y0]), np.maximum(high[:2], [x1, y1])
         # One more element: the grasp kind's index in GRASP_KINDS (rounded to the nearest).
-        low = np.append(space.low, 0.0).astype(np.float32)
-        high = np.append(space.high, float(len(GRASP_KINDS) - 1)).astype(np.float32)
+        low = np.append(low, 0.0).astype(np.float32)
+        high = np.append(high, float(len(GRASP_KINDS) - 1)).astype(np.float32)
         return gym.spaces.Box(low, high, dtype=np.float32)
 
     def step(self, action):
@@ -370,12 +402,12 @@ class BinPickEnv(PickPlaceEnv):
             )
         return numbers
 
-    def _clear_out_of_bin(self, require_rest: bool) -> list[int]:
+    def _clear_out_of_bin(self, require_rest: bool, keep: Instance | None = None) -> list[int]:
         """Take every instance in play that is no longer in the bin out of play (``require_rest``: only once
-        it is at rest and touches no finger, or has fallen off the table); their ids."""
+        it is at rest and touches no finger, or has fallen off the table; ``keep``: not that one); their ids."""
         cleared = []
         for instance in self.task.in_play():
-            if self.task.in_bin(instance):
+            if self.task.in_bin(instance) or instance is keep:
                 continue
             if require_rest:
                 self.task.set_focus(instance)
@@ -387,12 +419,15 @@ class BinPickEnv(PickPlaceEnv):
         return cleared
 
     def _finish_step(self, outcome: str, picked: Instance | None, cleared: list[int], extra: dict[str, Any]):
-        self._steps += 1
+        # A part set down at the station is half an attempt: the attempt ends with the regrasp's step.
+        self._steps += outcome != "set_down"
         targets_left = self.task.targets_left()
         if self.control == "grasp":
             self._failed_in_a_row = self._failed_in_a_row + 1 if outcome == "fail" else 0
         end_reason = None
-        if targets_left == 0:
+        if outcome == "set_down":
+            pass
+        elif targets_left == 0:
             end_reason = "cleared"
         elif self.control == "grasp" and self._failed_in_a_row >= self.max_failed_attempts:
             end_reason = "failed_attempts"
@@ -414,40 +449,88 @@ class BinPickEnv(PickPlaceEnv):
         return observation, float(outcome == "grasp_and_place"), terminated, truncated, info
 
     def _step_grasp(self, action: np.ndarray):
+        kind = GRASP_KINDS[int(round(float(action[4])))]
+        if self._phase == "regrasp":
+            return self._step_regrasp(action, kind)
         # The program is written for the target part (its opening, its grasp point's axial position for the
         # place); the judging starts at the target instance nearest the grasp and follows what is lifted.
         aimed = self.task.nearest_instance(action[:3], part=self.target)
         if aimed is not None:
             self.task.set_focus(aimed)
-        kind = GRASP_KINDS[int(round(float(action[4])))]
         script = GraspPlaceScript(self.sim, self.robot, self.task, open_width_m=self._pregrasp_width_m)
-        trace = script.run(action[:3], float(action[3]), kind)
+        set_down = self._set_down_spec() if kind == "standing" and self.station_xy_m is not None else None
+        trace = script.run(action[:3], float(action[3]), kind, set_down=set_down)
         judgement = self.task.judge(trace.lifted, trace.left_workspace, self.robot.contacts(self.task))
         picked = self.task.focus if trace.lifted else None
         outcome = judgement.outcome
         if picked is not None and picked.part != self.target:
             outcome = "wrong_part"
-        # The program's last move: back to the observation pose (the arm is clear above the cradle or the bin).
-        # The arm is put there; the time the move takes at the script's free-space speed is charged in info.
-        observation_move_s = self._observation_move_s()
-        self.robot.reset(self.observation_arm_rad)
-        self.task.settle()
-        cleared = self._clear_out_of_bin(require_rest=False)
+        elif set_down is not None and picked is not None:
+            self.task.settle()
+            if self.task.at_station(picked):
+                # The attempt goes on at the station: observed from the second pose, grasped again by the agent.
+                outcome, self._phase, self._regrasp_instance = "set_down", "regrasp", picked
         extra = {
             "lifted": judgement.lifted,
             "placement_distance_m": judgement.placement.distance_xy_m,
             "placement_axis_error_rad": judgement.placement.axis_error_rad,
             "sim_time_s": trace.sim_time_s,
-            "observation_move_s": observation_move_s,
             "grasp_kind": kind,
+            "regrasp": False,
         }
+        return self._end_grasp_step(outcome, picked, extra)
+
+    def _set_down_spec(self) -> tuple[np.ndarray, float, int]:
+        """Where :meth:`~don_gym.sim.script.GraspPlaceScript.set_down` puts a part held standing: its axis over
+        the table beyond the ledge's edge by :data:`~don_gym.sim.bin_task.LEDGE_OVERHANG_RADII` of its radius, the
+        fingers closing along the edge (so that none is in the way of the part tipping over it)."""
+        _, edge, away = station_ledge(self.station_xy_m)
+        radius = lying_footprint_m(self.model)[1] / 2
+        return edge + LEDGE_OVERHANG_RADII * radius * away, float(np.arctan2(away[1], away[0])), self.task.ledge_id
+
+    def _step_regrasp(self, action: np.ndarray, kind: str):
+        """The second grasp of an attempt, at the station: of the instance set down there, placed as a pick is.
+        Whatever happens, that instance leaves play with the step (placed, dropped, or left at the station)."""
+        instance = self._regrasp_instance
+        self.task.set_focus(instance)
+        script = GraspPlaceScript(self.sim, self.robot, self.task, open_width_m=self._pregrasp_width_m)
+        trace = script.run(action[:3], float(action[3]), kind)
+        judgement = self.task.judge(trace.lifted, trace.left_workspace, self.robot.contacts(self.task))
+        # The target was lifted out of the bin in this attempt: a regrasp that lifts nothing has not placed it.
+        outcome = judgement.outcome if trace.lifted else "grasp_only"
+        if trace.lifted and self.task.focus is not instance:
+            outcome = "wrong_part"
+        self._phase, self._regrasp_instance = "pick", None
+        extra = {
+            "lifted": True,
+            "placement_distance_m": judgement.placement.distance_xy_m,
+            "placement_axis_error_rad": judgement.placement.axis_error_rad,
+            "sim_time_s": trace.sim_time_s,
+            "grasp_kind": kind,
+            "regrasp": True,
+            "regrasp_outcome": outcome,
+        }
+        return self._end_grasp_step(outcome, instance, extra)
+
+    def _end_grasp_step(self, outcome: str, picked: Instance | None, extra: dict[str, Any]):
+        """The program's last move: to the observation pose of the next phase (the arm is clear above the cradle,
+        the bin or the station); the arm is put there, and the time the move takes at the script's free-space
+        speed is charged in ``info["observation_move_s"]``. The scene settles, every instance out of the bin (but
+        one waiting at the station) is cleared."""
+        regrasp = self._phase == "regrasp"
+        arm, tcp = (self.station_arm_rad, self._station_tcp_m) if regrasp else (self.observation_arm_rad, None)
+        extra["observation_move_s"] = self._observation_move_s(arm, tcp)
+        self.robot.reset(arm)
+        self.task.settle()
+        cleared = self._clear_out_of_bin(require_rest=False, keep=self._regrasp_instance)
         return self._finish_step(outcome, picked, cleared, extra)
 
-    def _observation_move_s(self) -> float:
-        """Seconds a scripted straight move from the TCP's pose now back to the observation pose takes
-        (:func:`~don_gym.sim.script.move_duration_s` at the free-space speed)."""
-        distance = float(np.linalg.norm(self.robot.tcp_pose()[:3, 3] - self._observation_tcp_m))
-        wrist_turn = float(self.observation_arm_rad[6]) - float(self.robot.joint_positions()[6])
+    def _observation_move_s(self, arm_rad: np.ndarray, tcp_m: np.ndarray | None = None) -> float:
+        """Seconds a scripted straight move from the TCP's pose now to an observation pose (arm angles, TCP position;
+        None: the bin's) takes (:func:`~don_gym.sim.script.move_duration_s` at the free-space speed)."""
+        tcp = self._observation_tcp_m if tcp_m is None else tcp_m
+        distance = float(np.linalg.norm(self.robot.tcp_pose()[:3, 3] - tcp))
+        wrist_turn = float(arm_rad[6]) - float(self.robot.joint_positions()[6])
         return move_duration_s(distance, wrist_turn, FREE_SPEED_M_S)
 
     def _step_ee(self, action: np.ndarray):
@@ -486,7 +569,9 @@ class BinPickEnv(PickPlaceEnv):
         instance :meth:`~don_gym.sim.bin_task.BinPickTask.top_instance` prefers, those in ``exclude`` last, e.g.
         the one the last attempt failed on): its grasp point in the world and the world yaw of its +axis
         projected on the table (``flip``: plus pi). Uses the true pose: tests and baselines only."""
-        if instance is None:
+        if instance is None and self._regrasp_instance is not None:
+            chosen = self._regrasp_instance
+        elif instance is None:
             chosen = self.task.top_instance(self.target, exclude=exclude)
             if chosen is None:
                 raise DonGymError("oracle_action(): no target instance is left in play; reset() first")

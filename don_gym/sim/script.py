@@ -264,10 +264,17 @@ class GraspPlaceScript:
         return self._yaw_for(grasp, wrist)
 
     # ---------------------------------------------------------------- run
-    def run(self, grasp_xyz: np.ndarray, axis_yaw_rad: float, kind: str = "across") -> ScriptTrace:
+    def run(
+        self,
+        grasp_xyz: np.ndarray,
+        axis_yaw_rad: float,
+        kind: str = "across",
+        set_down: tuple[np.ndarray, float, int] | None = None,
+    ) -> ScriptTrace:
         """Execute the whole grasp-and-place for the believed grasp point, +axis yaw and grasp kind
         (:data:`GRASP_KINDS`: ``"along"`` closes the fingers along the believed axis and places the part as an
-        across grasp would; ``"standing"`` is carried and placed as ``"across"``)."""
+        across grasp would; ``"standing"`` is carried and placed as ``"across"``). ``set_down``: instead of the
+        place, :meth:`set_down` what was lifted there (``(xy, hand_yaw_rad, ledge_body_id)``)."""
         if kind not in GRASP_KINDS:
             raise ValueError(f"kind={kind!r}: expected one of {list(GRASP_KINDS)}")
         task, robot, trace = self.task, self.robot, self.trace
@@ -285,6 +292,9 @@ class GraspPlaceScript:
             # Nothing in the hand: a real program would stop here too.
             self.gripper(MAX_WIDTH_M)
             trace.left_workspace = task.left_workspace()
+            return trace
+        if set_down is not None:
+            self.set_down(*set_down)
             return trace
 
         trace.phases.append("carry")
@@ -318,9 +328,14 @@ class GraspPlaceScript:
             trace.release_retries += 1
             self.gripper(0.0)
             trace.release_width_m = self.gripper(MAX_WIDTH_M, max_time_s=1.0)
+        self._retract_and_settle()
+        return trace
+
+    def _retract_and_settle(self) -> None:
+        """Up 10 cm, then let the part come to rest (five calm ticks in a row, at most 2 s) before judging."""
+        task, trace = self.task, self.trace
         trace.phases.append("retract")
         self.move(self._tcp + np.array([0.0, 0.0, 0.10]), self._wrist, RETRACT_SPEED_M_S, settle_s=0.0)
-        # Let the part come to rest (five calm ticks in a row, at most 2 s) before judging.
         calm = 0
         for _ in range(100):
             self._step(TICK_STEPS)
@@ -328,4 +343,28 @@ class GraspPlaceScript:
             if calm >= 5:
                 break
         trace.left_workspace = task.left_workspace()
-        return trace
+
+    def set_down(self, xy: np.ndarray, hand_yaw_rad: float, ledge_id: int) -> None:
+        """Carry the part held to above ``xy`` (world m) with the hand at ``hand_yaw_rad`` (or that plus pi, the
+        wrist nearer the middle of its range), lower it until it or a finger touches the ledge ``ledge_id`` or the
+        table, open the gripper and retract: a part held standing with its axis beyond the ledge's edge tips over
+        it and comes to lie below."""
+        task, robot = self.task, self.robot
+        part_id = task.part.body_id
+        target = np.array([xy[0], xy[1], TABLE_TOP_Z_M + CARRY_HEIGHT_M])
+        wrist = min((self._wrist_for(target, yaw) for yaw in (hand_yaw_rad, hand_yaw_rad + np.pi)), key=abs)
+        wrist = float(np.clip(wrist, ARM_LOWER_RAD[6] + WRIST_MARGIN_RAD, ARM_UPPER_RAD[6] - WRIST_MARGIN_RAD))
+        self.trace.phases.append("carry")
+        self.move(target, wrist, FREE_SPEED_M_S)
+
+        def touching() -> bool:
+            for body in (ledge_id, task.table_id):
+                if self.sim.contact_points(part_id, body) or any(robot.finger_contacts(body)):
+                    return True
+            return False
+
+        self.trace.phases.append("set_down")
+        lowest = np.array([xy[0], xy[1], TABLE_TOP_Z_M + MIN_TCP_HEIGHT_M])
+        self.move(lowest, wrist, PLACE_SPEED_M_S * 2, guard=touching, settle_s=0.0)
+        self.gripper(MAX_WIDTH_M, max_time_s=1.0)
+        self._retract_and_settle()
