@@ -91,8 +91,11 @@ TARGET_RATIO = 1.5
 SUPERVISED = ("supervised-edge", "supervised-mask")
 
 
-def methods(multi_part: list[str], quick: bool) -> list[str]:
-    """The oracle, the descriptor agent on optimal descriptors, the target's shipped networks, the multi-part ones."""
+def methods(multi_part: list[str], quick: bool, only: list[str] | None = None) -> list[str]:
+    """The oracle, the descriptor agent on optimal descriptors, the target's shipped networks, the multi-part ones
+    (``only``: those of them named, in that order)."""
+    if only:
+        return list(only)
     if quick:
         return [ORACLE_METHOD, ORACLE_DESCRIPTORS_METHOD, *multi_part]
     shipped = set(shipped_names_for(load_object(TARGET)))
@@ -103,7 +106,7 @@ def methods(multi_part: list[str], quick: bool) -> list[str]:
 def clearing(args: argparse.Namespace, split: str) -> None:
     """The clearing benchmark: section ``bin`` (``bin-dev``)."""
     piles = args.piles if args.piles is not None else (QUICK_PILES if args.quick else PILES)
-    chosen = methods(list(args.multi_part), args.quick)
+    chosen = methods(list(args.multi_part), args.quick, args.methods)
     config = BinBenchmarkConfig(
         parts=PARTS,
         target=TARGET,
@@ -112,7 +115,7 @@ def clearing(args: argparse.Namespace, split: str) -> None:
         seed=SPLIT_SEED[split],
         sensor=SENSOR,
         # The oracles alone in a quick run: a small camera; otherwise the networks' training size.
-        image_size=(160, 120) if args.quick and not args.multi_part else None,
+        image_size=(160, 120) if args.quick and not args.multi_part and not args.methods else None,
     )
     work = Path(tempfile.mkdtemp(prefix="don_gym_bench_bin_")) if args.quick else Path(args.work) / split
     try:
@@ -295,6 +298,14 @@ def main() -> None:
     )
     parser.add_argument(
         "--only", choices=("clearing", "tracking"), default=None, help="run one benchmark (default: both)"
+    )
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        default=None,
+        metavar="METHOD",
+        help="clearing: only these methods (oracle, oracle-descriptors, shipped names, checkpoints; default: the "
+        "oracles, the toolcap's shipped networks and --multi-part)",
     )
     parser.add_argument("--piles", type=int, default=None, help=f"clearing: piles per method (default: {PILES})")
     parser.add_argument(
