@@ -343,20 +343,6 @@ def test_a_four_number_action_is_an_across_grasp_and_a_bad_kind_is_one_line(env)
     assert info["sim_time_s"] > 0 and info["observation_move_s"] > 0
 
 
-def _stand_up(env: BinPickEnv, instance: int, up: float = 1.0) -> None:
-    """Put an instance standing on an end (+axis up, or down for ``up=-1``) in the middle of the bin, settled."""
-    from scipy.spatial.transform import Rotation
-
-    from don_gym.geometry import make_transform
-
-    body, model = env.task.instances[instance].body, env.task.instances[instance].model
-    R = Rotation.align_vectors([[0.0, 0.0, up]], [model.plus_axis])[0].as_matrix()
-    lowest = float(((model.mesh.vertices - model.center_of_mass) @ R.T)[:, 2].min())
-    com = np.array([0.51, 0.0, TABLE_TOP_Z_M - lowest + 0.001])
-    body.set_pose(make_transform(R, com - R @ model.center_of_mass))
-    env.task.settle()
-
-
 @pytest.mark.parametrize("up", [1.0, -1.0])
 def test_a_standing_part_is_set_down_at_the_station_and_placed_after_a_regrasp_from_the_descriptor_image(up):
     from don_gym.agents import BinAxisGraspAgent
@@ -365,7 +351,7 @@ def test_a_standing_part_is_set_down_at_the_station_and_placed_after_a_regrasp_f
     try:
         obs, info = env.reset(seed=102)
         assert info["phase"] == "pick" and info["regrasp_instance"] is None
-        _stand_up(env, 0, up)
+        env.task.stand(env.task.instances[0], (0.51, 0.0), plus_up=up > 0)
         grasp = env.task.grasp_point_world(env.task.instances[0])
         obs, reward, terminated, truncated, info = env.step(np.array([*grasp, 0.3, 2.0], dtype=np.float32))
         # Tipped over the ledge: lying at the station, observed from there; half an attempt.

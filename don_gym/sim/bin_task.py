@@ -374,6 +374,22 @@ class BinPickTask(PickPlaceTask):
         instance.in_play = False
         instance.lifted = False
 
+    def stand(self, instance: Instance, xy_m: Iterable[float], plus_up: bool = True, turn_rad: float = 0.0) -> None:
+        """Put an instance standing on an end over world ``xy_m`` (its +axis up, or down), turned by ``turn_rad``
+        about its axis, its lowest point 1 mm above the table, and let the scene settle (tests and the regrasp
+        benchmark: a standing part on demand)."""
+        model = instance.model
+        up = np.array([0.0, 0.0, 1.0 if plus_up else -1.0])
+        R = (
+            Rotation.from_rotvec(float(turn_rad) * up).as_matrix()
+            @ Rotation.align_vectors([up], [model.plus_axis])[0].as_matrix()
+        )
+        lowest = float(((np.asarray(model.mesh.vertices) - model.center_of_mass) @ R.T)[:, 2].min())
+        com = np.array([*list(xy_m)[:2], TABLE_TOP_Z_M - lowest + 0.001])
+        instance.body.set_pose(make_transform(R, com - R @ model.center_of_mass))
+        instance.in_play = True
+        self.settle()
+
     def grasp_point_world(self, instance: Instance) -> np.ndarray:
         """(3,) world point of :func:`~don_gym.sim.task.grasp_point_object` of an instance."""
         T = instance.body.T_world_object
