@@ -148,7 +148,16 @@ class BinPickEnv(PickPlaceEnv):
     ## Episode End
     Terminated when no target instance is left in play (``end_reason`` "cleared"), or in grasp mode after
     ``max_failed_attempts`` steps in a row whose outcome is ``fail`` (nothing lifted; "failed_attempts").
-    Truncated after ``max_steps`` steps ("step_limit").
+    Truncated after ``max_steps`` attempts ("step_limit"). A step whose outcome is ``set_down`` is half an attempt
+    (the regrasp's step ends it) and never ends the episode.
+
+    ## Regrasp station
+    A grasp of kind "standing" carries what it lifted to the station (``regrasp_station``, a free square of table
+    beside the bin with a ledge, :func:`~don_gym.sim.bin_task.check_station`) instead of the cradle and sets it
+    down over the ledge's edge, where it tips over and lies. If a target instance then lies on the station, the
+    outcome is ``set_down``, ``info["phase"]`` becomes "regrasp", the observation is the wrist camera's view from the
+    station's observation pose, and the next action is a grasp there, placed as any pick; that step's ``info``
+    has ``regrasp`` True and ``regrasp_outcome``, and the instance leaves play whatever happened.
 
     ## Arguments
     - ``parts``: part -> instance count (default ``{"toolcap": 3, "shaft": 2}``); a part is a built-in name or
@@ -159,6 +168,8 @@ class BinPickEnv(PickPlaceEnv):
       ``background``: as in the pick env.
     - ``max_steps``: step limit (None: 2 per instance in grasp mode, 200 per target instance in ee mode).
     - ``max_failed_attempts``: grasp mode: failed attempts in a row that end the episode (default 3).
+    - ``regrasp_station``: (x, y) centre of the regrasp station on the table, m (None: no station; a "standing"
+      grasp is then placed as an "across" one).
 
     ## Info
     After reset and every step: ``outcome`` (:data:`BIN_OUTCOMES`; "fail" after a reset and in ee mode while
@@ -170,7 +181,9 @@ class BinPickEnv(PickPlaceEnv):
     ``T_camera_reportedcamera``, ``sensor``, ``renderer``, ``background``, ``backdrop``; in grasp mode after a
     step also ``lifted``, ``placement_distance_m``, ``placement_axis_error_rad`` of the instance in focus,
     ``sim_time_s`` (the scripted motion's simulated seconds), ``observation_move_s`` (the seconds the move back to
-    the observation pose takes at the script's free-space speed; the arm is put there, not moved) and ``grasp_kind``.
+    the observation pose takes at the script's free-space speed; the arm is put there, not moved), ``grasp_kind``
+    and ``regrasp`` (with ``regrasp_outcome`` when True); always ``phase`` (:data:`PHASES`: what the next action is
+    for) and ``regrasp_instance`` (the id of the instance waiting at the station, or None).
 
     ## For agents and oracles
     - :meth:`instance_poses`: the true pose, part name, id, grasp point and visible pixel count of every
