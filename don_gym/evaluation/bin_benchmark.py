@@ -486,6 +486,7 @@ def check_targets(result: BinBenchmarkResult) -> list[str]:
     for method in result.config.methods:
         rates = result.rates(method)
         hour = result.per_hour(method)["per_hour"] or 0.0
+        multi_part = _is_multi_part_supervised(result.method_info.get(method, {}))
         if method == ORACLE_METHOD:
             (placed, targets), (picks, attempts) = rates["placed_per_target"], rates["picks_per_attempt"]
             ok = (
@@ -500,7 +501,9 @@ def check_targets(result: BinBenchmarkResult) -> list[str]:
                 f"{picks}/{attempts} per attempt (target >= {TARGET_ORACLE_PER_ATTEMPT:.0%}), {hour:.0f} placements "
                 f"per hour (target >= {TARGET_ORACLE_PER_HOUR:.0f}): " + ("met" if ok else "MISSED")
             )
-        elif _is_multi_part_supervised(result.method_info.get(method, {})):
+        elif multi_part and ORACLE_METHOD not in result.config.methods:
+            lines.append(f"{method}: its targets are ratios to the oracle's on the same piles; no oracle in the run")
+        elif multi_part:
             placed_ratio = (result.ratio_to_oracle(method, "placed_per_target") or {}).get("ratio") or 0.0
             hour_ratio = (result.ratio_to_oracle(method, "per_hour") or {}).get("ratio") or 0.0
             (wrong, lifts), (gave_up, piles) = rates["wrong_part"], rates["gave_up"]
