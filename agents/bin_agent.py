@@ -16,12 +16,14 @@ of those instances with the same rule (:func:`rank_grasps`):
 - :class:`BinOracleAgent` takes the true poses of the target instances the wrist image shows (``info``).
 
 Grasps (:func:`grasp_candidates`): the axis grasp of :class:`~don_gym.agents.AxisGraspAgent` (fingers across
-the axis at the part's grasp point, placeable in the cradle); for a part short enough for the opening, also
-the grasp along its axis (fingers on the end faces: it clears the bin but cannot be placed as the cradle
-wants); for a part standing on an end, grasps across it at several yaws. Each grasp is checked against the
+the axis at the part's grasp point); for a part short enough for the opening, also the grasp along its axis
+(fingers on the end faces; the action says so, and the env's place turns the hand a further 90 degrees, so
+both are placed in the cradle); for a part standing on an end, grasps across it at several yaws (it arrives
+upright). Each grasp is checked against the
 observed depth (the same point cloud for both agents): no point may lie where the fingers come down
 (:func:`finger_obstruction`), and the fingers must stay inside the bin's walls. The preferred grasp: not one
-that already failed here, fingers clear, placeable, highest (the top of the pile first), least occluded.
+that already failed here, fingers clear, across before along before standing, highest (the top of the pile
+first), least occluded.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from don_gym.agents.axis_grasp import surface_to_axis
+from don_gym.agents.axis_grasp import AxisGraspAgent, surface_to_axis
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics, backproject_depth, transform_points
 from don_gym.learning.model import DenseObjectNet
@@ -65,6 +67,7 @@ from don_gym.sim.bin_task import (
     lying_footprint_m,
     pregrasp_width_m,
 )
+from don_gym.sim.script import GRASP_KINDS, end_faces_axial_position_m
 from don_gym.sim.task import TABLE_TOP_Z_M, grasp_axial_position_m
 
 #: An instance whose +axis is within 45 degrees of vertical stands on an end.
@@ -107,8 +110,9 @@ STANDING_TOP_M = 0.006
 STANDING_FLOOR_M = 0.005
 #: A standing part is also grasped this far (m) below its upper end.
 RIM_GRASP_DEPTH_M = 0.012
-#: Grasp kinds, the preferred first: across the axis (placeable), across a standing part, along the axis.
-GRASP_KINDS = ("across", "standing", "along")
+#: Grasp kinds (:data:`~don_gym.sim.script.GRASP_KINDS`), the preferred first: across the axis, along it (both
+#: placed in the cradle: the env's place knows the kind), across a standing part (which arrives upright).
+GRASP_KIND_PREFERENCE = ("across", "along", "standing")
 
 
 @dataclass(frozen=True)
@@ -142,10 +146,11 @@ class InstanceEstimate:
 
 @dataclass(frozen=True)
 class GraspCandidate:
-    """A grasp of one instance estimate: the action ``[x, y, z, yaw]`` (yaw: the direction the env takes for the
-    part's +axis; the fingers close across it), its kind (:data:`GRASP_KINDS`), the share of the fingers'
-    footprint that observed points cover (:func:`finger_obstruction`), whether the fingers stay inside the walls,
-    and the estimate's index."""
+    """A grasp of one instance estimate: the action ``[x, y, z, yaw, kind]`` (yaw: the direction the env takes for
+    the part's +axis; kind: the index of :attr:`kind` in :data:`~don_gym.sim.script.GRASP_KINDS`, the fingers
+    closing across the yaw, or along it for ``"along"``), its kind, the share of the fingers' footprint that
+    observed points cover (:func:`finger_obstruction`), whether the fingers stay inside the walls, and the
+    estimate's index."""
 
     action: np.ndarray
     kind: str
@@ -156,6 +161,13 @@ class GraspCandidate:
     @property
     def clear(self) -> bool:
         return self.walls_clear and self.obstruction <= OBSTRUCTION_TOLERANCE
+
+
+def closing_yaw_rad(action: np.ndarray) -> float:
+    """The yaw (rad) across which the fingers of a grasp action close: the +axis yaw ``action[3]``, turned 90
+    degrees for a grasp along the axis (kind ``action[4]``; a 4-number action is across)."""
+    along = len(action) > 4 and GRASP_KINDS[int(round(float(action[4])))] == "along"
+    return float(action[3]) + (np.pi / 2 if along else 0.0)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -176,7 +188,7 @@ def finger_obstruction(points_world: np.ndarray, action: np.ndarray, opening_m: 
     :data:`~don_gym.sim.bin_task.FINGER_HALF_WIDTH_M` along it, higher than
     :data:`~don_gym.sim.bin_task.FINGER_BELOW_GRASP_M` below the grasp point (plus the sensor's noise), counted
     against the points the footprint holds at ``pixel_area_m2`` (one pixel's patch of table at the depth seen)."""
-    along, across = _closing_frame(float(action[3]))
+    along, across = _closing_frame(closing_yaw_rad(action))
     relative = points_world[:, :2] - np.asarray(action[:2], dtype=np.float64)
     a, c = np.abs(relative @ along), np.abs(relative @ across)
     inner, outer = opening_m / 2 - PAD_INSET_M, opening_m / 2 + FINGER_OUTSIDE_PAD_M
@@ -192,7 +204,7 @@ def finger_obstruction(points_world: np.ndarray, action: np.ndarray, opening_m: 
 
 def fingers_inside_walls(action: np.ndarray, opening_m: float) -> bool:
     """Whether the footprint of the open fingers of ``action`` lies inside the bin's walls."""
-    along, across = _closing_frame(float(action[3]))
+    along, across = _closing_frame(closing_yaw_rad(action))
     span = opening_m / 2 + FINGER_OUTSIDE_PAD_M
     x0, x1, y0, y1 = bin_inner_bounds()
     for c in (-span, span):
@@ -219,7 +231,7 @@ def grasp_candidates(
     axial = (np.asarray(object_model.mesh.vertices, dtype=np.float64) - object_model.center_of_mass) @ np.asarray(
         object_model.plus_axis, dtype=np.float64
     )
-    middle_axial = float(axial.min() + axial.max()) / 2  # the along grasp's fingers close on the two end faces
+    middle_axial = end_faces_axial_position_m(object_model)  # the along grasp's fingers close on the end faces
     along_axis_fits = length + 2 * GRASP_MARGIN_M <= opening
     out: list[GraspCandidate] = []
     for index, estimate in enumerate(estimates):
@@ -227,7 +239,7 @@ def grasp_candidates(
         direction = estimate.direction
         grasp = q1 + (grasp_axial_m - t1) / (t2 - t1) * (q2 - q1)
         yaw = float(np.arctan2(direction[1], direction[0]))
-        actions: list[tuple[np.ndarray, str]] = []
+        actions: list[tuple[np.ndarray, str]] = []  # [x, y, z, +axis yaw], kind
         if estimate.standing:
             # Across the part at its grasp point, or higher, around the upper rim: the fingertips then stay above
             # the parts lying around it.
@@ -241,12 +253,12 @@ def grasp_candidates(
         else:
             actions.append((np.array([*grasp, yaw], dtype=np.float64), "across"))
             if along_axis_fits:
-                # Fingers on the end faces: closing along the true axis is a grasp "across" a yaw 90 degrees off.
+                # Fingers on the end faces, the believed +axis yaw kept: the env turns the hand for the place.
                 middle = q1 + (middle_axial - t1) / (t2 - t1) * (q2 - q1)
-                action = np.array([*middle, yaw + np.pi / 2], dtype=np.float64)
-                actions.append((action, "along"))
-        for action, kind in actions:
-            action[3] = float(np.arctan2(np.sin(action[3]), np.cos(action[3])))
+                actions.append((np.array([*middle, yaw], dtype=np.float64), "along"))
+        for pose, kind in actions:
+            pose[3] = float(np.arctan2(np.sin(pose[3]), np.cos(pose[3])))
+            action = np.append(pose, float(GRASP_KINDS.index(kind)))
             out.append(
                 GraspCandidate(
                     action=action.astype(np.float32),
@@ -260,11 +272,12 @@ def grasp_candidates(
 
 
 def times_tried(action: np.ndarray, failed_actions: Sequence[np.ndarray]) -> int:
-    """How many failed grasps lie within :data:`TRIED_RADIUS_M` and :data:`TRIED_YAW_RAD` (modulo pi) of a grasp."""
+    """How many failed grasps lie within :data:`TRIED_RADIUS_M` and :data:`TRIED_YAW_RAD` (modulo pi) of a grasp,
+    the yaws the fingers close across (:func:`closing_yaw_rad`)."""
     tried = 0
     for failed in failed_actions:
         near = float(np.linalg.norm(np.asarray(action[:3]) - np.asarray(failed[:3]))) <= TRIED_RADIUS_M
-        turn = abs(float(action[3]) - float(failed[3])) % np.pi
+        turn = abs(closing_yaw_rad(action) - closing_yaw_rad(failed)) % np.pi
         tried += bool(near and min(turn, np.pi - turn) <= TRIED_YAW_RAD)
     return tried
 
@@ -275,8 +288,8 @@ def rank_grasps(
     failed_actions: Sequence[np.ndarray] = (),
 ) -> list[GraspCandidate]:
     """The candidates, the preferred first: tried least (:func:`times_tried`), fingers inside the walls, not
-    crowded (:data:`CROWDED`), placeable (:data:`GRASP_KINDS` order), fingers clear, grasp point highest (the top
-    of the pile first), least occluded, least of the fingers' footprint covered."""
+    crowded (:data:`CROWDED`), the kind (:data:`GRASP_KIND_PREFERENCE` order), fingers clear, grasp point highest
+    (the top of the pile first), least occluded, least of the fingers' footprint covered."""
 
     def key(candidate: GraspCandidate) -> tuple:
         estimate = estimates[candidate.estimate_index]
@@ -284,9 +297,9 @@ def rank_grasps(
             times_tried(candidate.action, failed_actions),
             not candidate.walls_clear,
             candidate.obstruction > CROWDED,
-            # Across the axis first even where a neighbour is near: closing fingers push it aside, and only such a
-            # grasp can be placed; the others are the way out when the walls or a crowd leave it no room.
-            GRASP_KINDS.index(candidate.kind),
+            # Across the axis first even where a neighbour is near: closing fingers push it aside; the others are
+            # the way out when the walls or a crowd leave it no room.
+            GRASP_KIND_PREFERENCE.index(candidate.kind),
             not candidate.clear,
             -round(float(candidate.action[2]) * 100.0),  # centimetres: parts at one level rank by what follows
             round(estimate.occlusion, 1),
@@ -441,10 +454,15 @@ class _BinAgentBase:
     def estimates(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None) -> list[InstanceEstimate]:
         raise NotImplementedError
 
+    def station_estimates(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None) -> list[InstanceEstimate]:
+        raise NotImplementedError
+
     def act(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None = None) -> np.ndarray:
-        """The grasp-mode action (4,) float32 for one observation (``info``: the step's, which the oracle and
-        oracle descriptors need). DonGymError when no instance of the target part is found."""
-        estimates = self.estimates(obs, info)
+        """The grasp-mode action (5,) float32 ``[x, y, z, yaw, kind]`` for one observation (``info``: the step's,
+        which the oracle and oracle descriptors need, and whose ``phase`` "regrasp" says the observation shows the
+        regrasp station: :meth:`station_estimates`). DonGymError when no instance of the target part is found."""
+        at_station = info is not None and info.get("phase") == "regrasp"
+        estimates = self.station_estimates(obs, info) if at_station else self.estimates(obs, info)
         if not estimates:
             raise DonGymError(f"no instance of {self.object_model.name!r} found in the image")
         intrinsics = CameraIntrinsics.from_array(obs["camera_intrinsics"])
@@ -484,6 +502,11 @@ class BinOracleAgent(_BinAgentBase):
             local = model.center_of_mass + np.outer(self.targets.axial_positions_m, model.plus_axis)
             out.append(InstanceEstimate(transform_points(T, local), instance=int(instance["instance"])))
         return out
+
+    def station_estimates(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None) -> list[InstanceEstimate]:
+        """The true pose of the instance set down at the regrasp station (``info["regrasp_instance"]``)."""
+        wanted = None if info is None else info.get("regrasp_instance")
+        return [e for e in self.estimates(obs, info) if e.instance == wanted]
 
     def __repr__(self) -> str:
         return f"BinOracleAgent(part={self.object_model.name!r})"
@@ -543,6 +566,7 @@ class BinAxisGraspAgent(_BinAgentBase):
             np.linalg.norm(self.reference_descriptors[0] - self.reference_descriptors[1])
         )
         self.temperature = float(temperature)
+        self._station_agent: Any = None
 
     @property
     def method(self) -> str:
@@ -586,6 +610,25 @@ class BinAxisGraspAgent(_BinAgentBase):
         cloud = world_point_cloud(depth, intrinsics, T_world_camera)
         standing = standing_from_coincident_rings(points, found, cloud, self.object_model, self.targets, TABLE_TOP_Z_M)
         return [*found, *standing]
+
+    def station_estimates(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None) -> list[InstanceEstimate]:
+        """The part set down alone at the regrasp station, as the single-part axis agent
+        (:class:`~don_gym.agents.AxisGraspAgent`) sees it: its two ring keypoints in the descriptor image, moved onto
+        the axis; which end is which is decided here, by the descriptors. None found: no estimate."""
+        if self._station_agent is None:
+            self._station_agent = AxisGraspAgent.from_parts(
+                self.object_model, self.source, self.reference_descriptors, self.targets
+            )
+        descriptors = self.source.descriptor_image(obs, info)
+        points = self._station_agent.keypoints({**obs, "descriptors": descriptors})
+        if not np.all(np.isfinite(points)):
+            return []
+        camera = np.asarray(obs["camera_pose"], dtype=np.float64)[:3, 3]
+        try:
+            axis_points, _ = surface_to_axis(points, camera, self.targets.radii_m)
+        except DonGymError:
+            return []
+        return [InstanceEstimate(axis_points)]
 
     def __repr__(self) -> str:
         return f"BinAxisGraspAgent(part={self.object_model.name!r}, method={self.method!r})"

@@ -479,6 +479,47 @@ def plot_rate_bars(
     return _save(fig, path)
 
 
+def plot_episode_frames(
+    frames: Sequence[Mapping[str, Any]],
+    path: str | Path,
+    *,
+    title: str | None = None,
+    columns: int = 3,
+    panel_width_in: float = 3.2,
+) -> Path:
+    """Frames of one episode side by side, each with the grasp about to be made drawn on it: the two finger pads
+    (squares, joined by the line they close along) and the believed +axis (an arrow from the grasp point).
+
+    ``frames``: mappings with ``rgb`` ((H, W, 3) uint8), optionally ``fingers_uv`` ((2, 2) pixels of the two
+    pads), ``axis_uv`` ((2, 2) pixels: grasp point, a point along the believed +axis) and ``title``.
+    """
+    if not frames:
+        raise DonGymError("no frames to show; expected at least one {'rgb': image}")
+    rows = -(-len(frames) // columns)
+    shape = np.asarray(frames[0]["rgb"]).shape
+    aspect = shape[0] / shape[1]
+    fig = _new_figure(
+        columns * panel_width_in, rows * (panel_width_in * aspect + 0.3) + 0.4, dpi=100, layout="constrained"
+    )
+    axes = fig.subplots(rows, columns, squeeze=False)
+    for ax in axes.ravel():
+        ax.set_axis_off()
+    for ax, frame in zip(axes.ravel(), frames, strict=False):
+        ax.imshow(frame["rgb"], interpolation="bilinear")
+        if frame.get("fingers_uv") is not None:
+            fingers = np.asarray(frame["fingers_uv"], dtype=np.float64)
+            ax.plot(fingers[:, 0], fingers[:, 1], "-", color="yellow", linewidth=1.2)
+            ax.plot(fingers[:, 0], fingers[:, 1], "s", markersize=6, markerfacecolor="none", markeredgecolor="yellow")
+        if frame.get("axis_uv") is not None:
+            (u0, v0), (u1, v1) = np.asarray(frame["axis_uv"], dtype=np.float64)
+            ax.annotate("", xy=(u1, v1), xytext=(u0, v0), arrowprops={"arrowstyle": "->", "color": "red", "lw": 1.5})
+        if frame.get("title"):
+            ax.set_title(str(frame["title"]), fontsize=7)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    return _save(fig, path)
+
+
 # --- training (don_gym.learning.train, don_gym.agents.rl) -----------------------------------------------------
 
 

@@ -278,6 +278,12 @@ def test_bin_capacity_follows_the_floor_and_the_parts_footprints():
         ({"max_failed_attempts": 0}, r"max_failed_attempts=0: expected a positive integer"),
         ({"reward_type": "dense"}, r"reward_type='dense' is unknown"),
         ({"part_scales": {"shaft": 0.001}, "parts": {"toolcap": 1}}, r"part_scales: 'shaft' is not among the parts"),
+        ({"regrasp_station": (0.7, -0.4)}, r"regrasp_station=\(0.7, -0.4\) is out of reach: 0.81 m from the robot"),
+        ({"regrasp_station": (0.2, -0.05)}, r"regrasp_station=\(0.2, -0.05\) is out of reach"),
+        ({"regrasp_station": (0.51, 0.1)}, r"regrasp_station=\(0.51, 0.1\): its square .* overlaps the bin"),
+        ({"regrasp_station": (0.36, 0.40)}, r"regrasp_station=\(0.36, 0.4\): its square is occupied by the cradle"),
+        ({"regrasp_station": (0.45, -0.6)}, r"regrasp_station=\(0.45, -0.6\): its 0.14 m square leaves the table"),
+        ({"regrasp_station": "left"}, r"regrasp_station='left': expected None or \(x, y\)"),
     ],
 )
 def test_bad_input_is_one_line_naming_it(kwargs, expected):
@@ -292,3 +298,94 @@ def test_bad_reset_options_and_oracle_instance(env):
     env.reset(seed=100)
     with pytest.raises(DonGymError, match=r"instance=99: expected an instance id 0..4"):
         env.oracle_action(instance=99)
+
+
+def _along_action(env: BinPickEnv, instance: int, flip: bool = False) -> np.ndarray:
+    """An oracle grasp along instance ``instance``'s axis: the middle of its end faces, its +axis yaw (plus pi if
+    ``flip``), kind 1 ("along")."""
+    from don_gym.sim.script import GRASP_KINDS, end_faces_axial_position_m
+
+    chosen = env.task.instances[instance]
+    T = chosen.body.T_world_object
+    model = chosen.model
+    middle = transform_points(T, (model.center_of_mass + end_faces_axial_position_m(model) * model.plus_axis)[None])[0]
+    yaw = float(env.oracle_action(instance=instance, flip=flip)[3])
+    return np.array([*middle, yaw, GRASP_KINDS.index("along")], dtype=np.float32)
+
+
+def test_a_grasp_along_the_axis_is_placed_and_a_reversed_axis_still_lands_reversed():
+    env = BinPickEnv(parts={"toolcap": 1}, image_size=None, sensor="ideal")
+    try:
+        assert env.action_space.shape == (5,) and env.action_space.high[4] == 2.0
+        results = {}
+        for flip in (False, True):
+            env.reset(seed=101)
+            _, reward, _, _, info = env.step(_along_action(env, 0, flip))
+            results[flip] = info
+        assert results[False]["grasp_kind"] == "along"
+        assert results[False]["outcome"] == "grasp_and_place", results[False]["placement_axis_error_rad"]
+        # Perception decides: the axis taken the wrong way round is placed the wrong way round.
+        assert results[True]["outcome"] == "grasp_only"
+        assert results[True]["placement_axis_error_rad"] > np.deg2rad(150)
+    finally:
+        env.close()
+
+
+def test_a_four_number_action_is_an_across_grasp_and_a_bad_kind_is_one_line(env):
+    env.reset(seed=100)
+    np.testing.assert_array_equal(env._with_grasp_kind(EMPTY_GRASP), [*EMPTY_GRASP, 0.0])
+    for kind in (3.0, -1.0, np.nan):
+        with pytest.raises(DonGymError, match=r"action\[4\]=.* \(grasp kind\): expected the index of one of") as error:
+            env.step(np.array([*EMPTY_GRASP, kind], dtype=np.float32))
+        assert "\n" not in str(error.value)
+    _, _, _, _, info = env.step(EMPTY_GRASP)
+    assert info["outcome"] == "fail" and info["grasp_kind"] == "across"
+    assert info["sim_time_s"] > 0 and info["observation_move_s"] > 0
+
+
+@pytest.mark.parametrize("up", [1.0, -1.0])
+def test_a_standing_part_is_set_down_at_the_station_and_placed_after_a_regrasp_from_the_descriptor_image(up):
+    from don_gym.agents import BinAxisGraspAgent
+
+    env = BinPickEnv(parts={"toolcap": 1}, image_size=(160, 120), sensor="ideal")
+    try:
+        obs, info = env.reset(seed=102)
+        assert info["phase"] == "pick" and info["regrasp_instance"] is None
+        env.task.stand(env.task.instances[0], (0.51, 0.0), plus_up=up > 0)
+        grasp = env.task.grasp_point_world(env.task.instances[0])
+        obs, reward, terminated, truncated, info = env.step(np.array([*grasp, 0.3, 2.0], dtype=np.float32))
+        # Tipped over the ledge: lying at the station, observed from there; half an attempt.
+        assert info["outcome"] == "set_down" and info["phase"] == "regrasp" and info["regrasp_instance"] == 0
+        assert not (terminated or truncated) and info["attempts"] == 0 and reward == 0.0
+        assert env.task.at_station(env.task.instances[0])
+        assert abs(float(env.task.instances[0].body.plus_axis_world()[2])) < 0.3
+        assert info["observation_move_s"] > 0
+        agent = BinAxisGraspAgent(env, model="oracle")
+        agent.reset()
+        action = agent.act(obs, info)
+        assert action.shape == (5,) and action[4] == 0.0  # across the axis, which end is which from the descriptors
+        _, reward, terminated, _, info = env.step(action)
+        assert info["regrasp"] and info["regrasp_outcome"] == info["outcome"] == "grasp_and_place"
+        assert reward == 1.0 and terminated and info["end_reason"] == "cleared" and info["phase"] == "pick"
+        assert info["attempts"] == 1
+    finally:
+        env.close()
+
+
+def test_a_pile_on_the_station_is_refused_in_one_line(monkeypatch):
+    from don_gym.geometry import make_transform
+    from don_gym.sim.bin_task import BinPickTask
+
+    drop = BinPickTask.drop_pile
+
+    def drop_one_on_the_station(self, rng):
+        drop(self, rng)
+        self.instances[0].body.set_pose(make_transform(translation=[*self.station_xy_m, 0.02]))
+
+    monkeypatch.setattr(BinPickTask, "drop_pile", drop_one_on_the_station)
+    env = BinPickEnv(parts={"toolcap": 1}, image_size=None)
+    try:
+        with pytest.raises(DonGymError, match=r"regrasp_station=\[0.45, -0.33\]: its area is occupied by instance"):
+            env.reset(seed=0)
+    finally:
+        env.close()

@@ -175,13 +175,16 @@ def run(args: argparse.Namespace) -> int:
 
 BIN_DESCRIPTION = """\
 bin: the clearing benchmark. Per method, seeded piles of parts in a bin (DONBinPick-v0, pile i is
-reset(seed=SEED+i)) are picked one instance per step until no target part is left (cleared), the env's
-failed attempts in a row run out, or its step limit. Methods: oracle (true poses of the instances seen),
-oracle-descriptors (the descriptor agent on the pile's optimal descriptors), shipped network names or
-checkpoint paths of the target part, or of several parts including it (the descriptor agent,
-don_gym.agents.BinAxisGraspAgent). Reported per method: piles cleared, picks (target parts placed) per
-attempt, wrong-part picks per lift and flipped placements per axis-grasp lift, each with its 95% Wilson
-interval. --shard i/n runs piles i, i+n, ... into OUT/shards/; --merge then makes the whole run's outputs.
+reset(seed=SEED+i)) are picked one instance per attempt (a part lifted standing regrasped at the station)
+until no target part is left (cleared), the env's failed attempts in a row run out, or its step limit.
+Methods: oracle (true poses of the instances seen), oracle-descriptors (the descriptor agent on the pile's
+optimal descriptors), shipped network names or checkpoint paths of the target part, or of several parts
+including it (the descriptor agent, don_gym.agents.BinAxisGraspAgent). Reported per method, on the same
+piles: placed per target instance (the headline), picks and lift success per attempt, piles fully placed,
+piles given up, wrong-part lifts, flips, regrasps and their success, each with its 95% Wilson interval;
+placements per hour of simulated time (motion and the method's measured perception time charged) and the
+ratios to the oracle's. --shard i/n runs piles i, i+n, ... into OUT/shards/; --merge then makes the whole
+run's outputs.
 """
 
 BIN_EPILOG = """\
@@ -192,8 +195,9 @@ examples:
   don-gym benchmark bin --piles 100 --shard 0/4 --out bench/   # ... --shard 3/4, then:
   don-gym benchmark bin --merge --out bench/
 
---out writes bin_episodes.json (summary and one record per episode: method, seed, cleared, attempts,
-picks, wrong_part_picks, flipped, ...), bin.md (the table) and bin_rates.png (the chart).
+--out writes bin_episodes.json (summary and one record per episode: method, seed, targets, attempts,
+picks, wrong_part_picks, flipped, regrasps, motion_seconds, perception_seconds, ...), bin.md (the table)
+and bin_rates.png (the chart).
 """
 
 

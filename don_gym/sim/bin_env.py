@@ -17,11 +17,18 @@ from don_gym.geometry import CameraIntrinsics
 from don_gym.objects import ObjectModel, builtin_names, load_object, part_name
 from don_gym.sim.bin_task import (
     DEFAULT_PARTS,
+    DEFAULT_STATION_XY_M,
     DEFAULT_TARGET,
+    LEDGE_OVERHANG_RADII,
+    STATION_CAMERA_HEIGHT_M,
     BinPickTask,
     Instance,
     check_bin_parts,
+    check_station,
+    lying_footprint_m,
     pregrasp_width_m,
+    station_bounds,
+    station_ledge,
 )
 from don_gym.sim.camera import decode_segmentation
 from don_gym.sim.env import (
@@ -31,13 +38,16 @@ from don_gym.sim.env import (
     is_integer,
 )
 from don_gym.sim.robot import FINGER_JOINTS, Panda, wrap_angle
-from don_gym.sim.script import GraspPlaceScript
+from don_gym.sim.script import FREE_SPEED_M_S, GRASP_KINDS, GraspPlaceScript, move_duration_s
 from don_gym.sim.sensor import sample_calibration_error
 from don_gym.sim.task import OBSERVATION_YAW_RAD, observation_camera_position
 
 #: ``info["outcome"]`` of a step, worst first: nothing lifted; a target lifted but not placed in the cradle
-#: as it should be; a target placed; a part that is not the target lifted.
-BIN_OUTCOMES = ("fail", "grasp_only", "grasp_and_place", "wrong_part")
+#: as it should be; a target placed; a part that is not the target lifted; a target lifted standing and set down
+#: at the regrasp station (the attempt goes on with the next step's grasp there).
+BIN_OUTCOMES = ("fail", "grasp_only", "grasp_and_place", "wrong_part", "set_down")
+#: ``info["phase"]``: what the next action is for: a pick from the bin, or the regrasp at the station.
+PHASES = ("pick", "regrasp")
 #: ``info["end_reason"]`` once an episode is over.
 END_REASONS = ("cleared", "failed_attempts", "step_limit")
 #: Grasp mode: default step limit per instance in the pile; ee mode: per target instance.
@@ -106,11 +116,15 @@ class BinPickEnv(PickPlaceEnv):
     renderers and backgrounds are those of the pick env.
 
     ## Action Space
-    - ``control="grasp"`` (one pick attempt per step): ``Box(4)`` ``[x, y, z, yaw]``, the grasp point in the
-      world (m) and the world yaw (rad) of the +axis of the part the agent means to pick, as in the pick env.
-      The scripted program (:class:`~don_gym.sim.script.GraspPlaceScript`) grasps there across the axis and,
-      if something is lifted, carries it to the cradle and places it (offset by the grasp point's axial position
-      on the part nearest to the grasp point). The arm then returns to the observation pose.
+    - ``control="grasp"`` (one pick attempt per step): ``Box(5)`` ``[x, y, z, yaw, kind]``, the grasp point in
+      the world (m), the world yaw (rad) of the +axis of the part the agent means to pick, as in the pick env,
+      and the grasp kind: the index (rounded) of one of :data:`~don_gym.sim.script.GRASP_KINDS`, 0 "across"
+      the axis, 1 "along" it (the fingers on the end faces), 2 "standing" (across a part standing on an end).
+      A 4-number action is an "across" grasp. The scripted program
+      (:class:`~don_gym.sim.script.GraspPlaceScript`) grasps there (the fingers closing across the believed
+      axis, or along it) and, if something is lifted, carries it to the cradle and places it, the believed axis
+      turned onto the cradle's direction and the point held offset by its axial position on the part (the grasp
+      point; for "along" the middle of the end faces). The arm then returns to the observation pose.
     - ``control="ee"`` (25 Hz, for RL): ``Box(-1, 1, (5,))`` as in the pick env.
 
     ## Observation Space
@@ -134,7 +148,16 @@ class BinPickEnv(PickPlaceEnv):
     ## Episode End
     Terminated when no target instance is left in play (``end_reason`` "cleared"), or in grasp mode after
     ``max_failed_attempts`` steps in a row whose outcome is ``fail`` (nothing lifted; "failed_attempts").
-    Truncated after ``max_steps`` steps ("step_limit").
+    Truncated after ``max_steps`` attempts ("step_limit"). A step whose outcome is ``set_down`` is half an attempt
+    (the regrasp's step ends it) and never ends the episode.
+
+    ## Regrasp station
+    A grasp of kind "standing" carries what it lifted to the station (``regrasp_station``, a free square of table
+    beside the bin with a ledge, :func:`~don_gym.sim.bin_task.check_station`) instead of the cradle and sets it
+    down over the ledge's edge, where it tips over and lies. If a target instance then lies on the station, the
+    outcome is ``set_down``, ``info["phase"]`` becomes "regrasp", the observation is the wrist camera's view from the
+    station's observation pose, and the next action is a grasp there, placed as any pick; that step's ``info``
+    has ``regrasp`` True and ``regrasp_outcome``, and the instance leaves play whatever happened.
 
     ## Arguments
     - ``parts``: part -> instance count (default ``{"toolcap": 3, "shaft": 2}``); a part is a built-in name or
@@ -145,6 +168,8 @@ class BinPickEnv(PickPlaceEnv):
       ``background``: as in the pick env.
     - ``max_steps``: step limit (None: 2 per instance in grasp mode, 200 per target instance in ee mode).
     - ``max_failed_attempts``: grasp mode: failed attempts in a row that end the episode (default 3).
+    - ``regrasp_station``: (x, y) centre of the regrasp station on the table, m (None: no station; a "standing"
+      grasp is then placed as an "across" one).
 
     ## Info
     After reset and every step: ``outcome`` (:data:`BIN_OUTCOMES`; "fail" after a reset and in ee mode while
@@ -154,7 +179,11 @@ class BinPickEnv(PickPlaceEnv):
     (:data:`END_REASONS` or None), ``instances`` (:meth:`instance_poses`), ``instance_segmentation`` ((H, W)
     int32 instance id per pixel of the wrist image, -1 elsewhere; None without images), ``T_world_camera``,
     ``T_camera_reportedcamera``, ``sensor``, ``renderer``, ``background``, ``backdrop``; in grasp mode after a
-    step also ``lifted``, ``placement_distance_m``, ``placement_axis_error_rad`` of the instance in focus.
+    step also ``lifted``, ``placement_distance_m``, ``placement_axis_error_rad`` of the instance in focus,
+    ``sim_time_s`` (the scripted motion's simulated seconds), ``observation_move_s`` (the seconds the move back to
+    the observation pose takes at the script's free-space speed; the arm is put there, not moved), ``grasp_kind``
+    and ``regrasp`` (with ``regrasp_outcome`` when True); always ``phase`` (:data:`PHASES`: what the next action is
+    for) and ``regrasp_instance`` (the id of the instance waiting at the station, or None).
 
     ## For agents and oracles
     - :meth:`instance_poses`: the true pose, part name, id, grasp point and visible pixel count of every
@@ -187,6 +216,7 @@ class BinPickEnv(PickPlaceEnv):
         max_steps: int | None = None,
         max_failed_attempts: int = 3,
         background: str = "plain",
+        regrasp_station: tuple[float, float] | None = DEFAULT_STATION_XY_M,
     ):
         gym.Env.__init__(self)
         check_view_arguments(control, reward_type, ("sparse",), background, render_mode, observe_images)
@@ -196,6 +226,7 @@ class BinPickEnv(PickPlaceEnv):
             raise DonGymError(f"max_failed_attempts={max_failed_attempts!r}: expected a positive integer")
         image_size = self._set_camera_options(image_size, render_size, sensor, renderer)
         self.models, self.counts, self.target = resolve_parts(parts, target, part_scales)
+        self.station_xy_m = None if regrasp_station is None else check_station(regrasp_station)
         self.control = control
         self.reward_type = reward_type
         self.render_mode = render_mode
@@ -220,6 +251,8 @@ class BinPickEnv(PickPlaceEnv):
         self._steps = 0
         self._failed_in_a_row = 0
         self._ee_yaw_rad = 0.0
+        self._phase = "pick"
+        self._regrasp_instance: Instance | None = None
 
     # ------------------------------------------------------------- the world
     def _build_world(self, renderer: str, background: str) -> None:
@@ -233,11 +266,22 @@ class BinPickEnv(PickPlaceEnv):
             self.counts,
             self.target,
             grasp_points_object=None if known is None else known.grasp_points_object,
+            station_xy_m=self.station_xy_m,
         )
         self.robot = Panda(self.sim)
         self.task.attach_gripper(self.robot.body_id, FINGER_JOINTS)
         self.observation_arm_rad = self.robot.solve_top_down_camera(observation_camera_position(), OBSERVATION_YAW_RAD)
         self.robot.reset(self.observation_arm_rad)
+        #: TCP position (world, m) at the observation pose.
+        self._observation_tcp_m = self.robot.tcp_pose()[:3, 3].copy()
+        if self.station_xy_m is not None:
+            # The second observation pose: the wrist camera over the ledge's foot, where a part set down lies.
+            _, edge, away = station_ledge(self.station_xy_m)
+            camera = np.array([*(edge + 0.03 * away), STATION_CAMERA_HEIGHT_M])
+            self.station_arm_rad = self.robot.solve_top_down_camera(camera, OBSERVATION_YAW_RAD)
+            self.robot.reset(self.station_arm_rad)
+            self._station_tcp_m = self.robot.tcp_pose()[:3, 3].copy()
+            self.robot.reset(self.observation_arm_rad)
         self._set_up_backdrop(background)
         self.sim.take_snapshot()
         self._specular = {i.body.body_id: i.model.material.specular for i in self.task.instances}
@@ -300,6 +344,8 @@ class BinPickEnv(PickPlaceEnv):
             "failed_in_a_row": self._failed_in_a_row,
             "instances": self.instance_poses(),
             "instance_segmentation": self.instance_segmentation(),
+            "phase": self._phase,
+            "regrasp_instance": None if self._regrasp_instance is None else self._regrasp_instance.instance_id,
         }
 
     # ----------------------------------------------------------------- reset
@@ -314,6 +360,9 @@ class BinPickEnv(PickPlaceEnv):
         self._world_used = True
         self._restore_snapshot()
         self.task.drop_pile(self.np_random)
+        if self.station_xy_m is not None:
+            self.task.check_station_free()
+        self._phase, self._regrasp_instance = "pick", None
         self._T_camera_reportedcamera = sample_calibration_error(self.sensor, self.np_random)
         self._episode_over = False
         self._steps = 0
@@ -332,12 +381,46 @@ class BinPickEnv(PickPlaceEnv):
         return observation, info
 
     # ------------------------------------------------------------------ step
-    def _clear_out_of_bin(self, require_rest: bool) -> list[int]:
+    def _make_action_space(self) -> gym.spaces.Box:
+        space = super()._make_action_space()
+        if self.control != "grasp":
+            return space
+        low, high = space.low.copy(), space.high.copy()
+        if self.station_xy_m is not None:  # grasps at the regrasp station too
+            x0, x1, y0, y1 = station_bounds(self.station_xy_m)
+            low[:2], high[:2] = np.minimum(low[:2], [x0, y0]), np.maximum(high[:2], [x1, y1])
+        # One more element: the grasp kind's index in GRASP_KINDS (rounded to the nearest).
+        low = np.append(low, 0.0).astype(np.float32)
+        high = np.append(high, float(len(GRASP_KINDS) - 1)).astype(np.float32)
+        return gym.spaces.Box(low, high, dtype=np.float32)
+
+    def step(self, action):
+        if self.control == "grasp" and not self._episode_over:
+            action = self._with_grasp_kind(action)
+        return super().step(action)
+
+    def _with_grasp_kind(self, action: Any) -> Any:
+        """A grasp action of 4 numbers with the kind "across" appended (their meaning before the kind existed);
+        DonGymError for a kind that is not one of :data:`~don_gym.sim.script.GRASP_KINDS`' indices."""
+        try:
+            numbers = np.asarray(action, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            return action  # the parent names it
+        if numbers.shape == (4,):
+            return np.append(numbers, 0.0)
+        if numbers.shape == (5,) and not (np.isfinite(numbers[4]) and -0.5 < numbers[4] < len(GRASP_KINDS) - 0.5):
+            raise DonGymError(
+                f"action[4]={numbers[4]!r} (grasp kind): expected the index of one of {list(GRASP_KINDS)} "
+                f"(0..{len(GRASP_KINDS) - 1})"
+            )
+        return numbers
+
+    def _clear_out_of_bin(self, require_rest: bool, keep: Instance | None = None) -> list[int]:
         """Take every instance in play that is no longer in the bin out of play (``require_rest``: only once
-        it is at rest and touches no finger, or has fallen off the table); their ids."""
+        it is at rest and touches no finger, or has fallen off the table; ``keep``: not that one); their ids."""
         cleared = []
         for instance in self.task.in_play():
-            if self.task.in_bin(instance):
+            if self.task.in_bin(instance) or instance is keep:
                 continue
             if require_rest:
                 self.task.set_focus(instance)
@@ -349,12 +432,15 @@ class BinPickEnv(PickPlaceEnv):
         return cleared
 
     def _finish_step(self, outcome: str, picked: Instance | None, cleared: list[int], extra: dict[str, Any]):
-        self._steps += 1
+        # A part set down at the station is half an attempt: the attempt ends with the regrasp's step.
+        self._steps += outcome != "set_down"
         targets_left = self.task.targets_left()
         if self.control == "grasp":
             self._failed_in_a_row = self._failed_in_a_row + 1 if outcome == "fail" else 0
         end_reason = None
-        if targets_left == 0:
+        if outcome == "set_down":
+            pass
+        elif targets_left == 0:
             end_reason = "cleared"
         elif self.control == "grasp" and self._failed_in_a_row >= self.max_failed_attempts:
             end_reason = "failed_attempts"
@@ -376,29 +462,89 @@ class BinPickEnv(PickPlaceEnv):
         return observation, float(outcome == "grasp_and_place"), terminated, truncated, info
 
     def _step_grasp(self, action: np.ndarray):
+        kind = GRASP_KINDS[int(round(float(action[4])))]
+        if self._phase == "regrasp":
+            return self._step_regrasp(action, kind)
         # The program is written for the target part (its opening, its grasp point's axial position for the
         # place); the judging starts at the target instance nearest the grasp and follows what is lifted.
         aimed = self.task.nearest_instance(action[:3], part=self.target)
         if aimed is not None:
             self.task.set_focus(aimed)
         script = GraspPlaceScript(self.sim, self.robot, self.task, open_width_m=self._pregrasp_width_m)
-        trace = script.run(action[:3], float(action[3]))
+        set_down = self._set_down_spec() if kind == "standing" and self.station_xy_m is not None else None
+        trace = script.run(action[:3], float(action[3]), kind, set_down=set_down)
         judgement = self.task.judge(trace.lifted, trace.left_workspace, self.robot.contacts(self.task))
         picked = self.task.focus if trace.lifted else None
         outcome = judgement.outcome
         if picked is not None and picked.part != self.target:
             outcome = "wrong_part"
-        # The program's last move: back to the observation pose (the arm is clear above the cradle or the bin).
-        self.robot.reset(self.observation_arm_rad)
-        self.task.settle()
-        cleared = self._clear_out_of_bin(require_rest=False)
+        elif set_down is not None and picked is not None:
+            self.task.settle()
+            if self.task.at_station(picked):
+                # The attempt goes on at the station: observed from the second pose, grasped again by the agent.
+                outcome, self._phase, self._regrasp_instance = "set_down", "regrasp", picked
         extra = {
             "lifted": judgement.lifted,
             "placement_distance_m": judgement.placement.distance_xy_m,
             "placement_axis_error_rad": judgement.placement.axis_error_rad,
             "sim_time_s": trace.sim_time_s,
+            "grasp_kind": kind,
+            "regrasp": False,
         }
+        return self._end_grasp_step(outcome, picked, extra)
+
+    def _set_down_spec(self) -> tuple[np.ndarray, float, int]:
+        """Where :meth:`~don_gym.sim.script.GraspPlaceScript.set_down` puts a part held standing: its axis over
+        the table beyond the ledge's edge by :data:`~don_gym.sim.bin_task.LEDGE_OVERHANG_RADII` of its radius, the
+        fingers closing along the edge (so that none is in the way of the part tipping over it)."""
+        _, edge, away = station_ledge(self.station_xy_m)
+        radius = lying_footprint_m(self.model)[1] / 2
+        return edge + LEDGE_OVERHANG_RADII * radius * away, float(np.arctan2(away[1], away[0])), self.task.ledge_id
+
+    def _step_regrasp(self, action: np.ndarray, kind: str):
+        """The second grasp of an attempt, at the station: of the instance set down there, placed as a pick is.
+        Whatever happens, that instance leaves play with the step (placed, dropped, or left at the station)."""
+        instance = self._regrasp_instance
+        self.task.set_focus(instance)
+        script = GraspPlaceScript(self.sim, self.robot, self.task, open_width_m=self._pregrasp_width_m)
+        trace = script.run(action[:3], float(action[3]), kind)
+        judgement = self.task.judge(trace.lifted, trace.left_workspace, self.robot.contacts(self.task))
+        # The target was lifted out of the bin in this attempt: a regrasp that lifts nothing has not placed it.
+        outcome = judgement.outcome if trace.lifted else "grasp_only"
+        if trace.lifted and self.task.focus is not instance:
+            outcome = "wrong_part"
+        self._phase, self._regrasp_instance = "pick", None
+        extra = {
+            "lifted": True,
+            "placement_distance_m": judgement.placement.distance_xy_m,
+            "placement_axis_error_rad": judgement.placement.axis_error_rad,
+            "sim_time_s": trace.sim_time_s,
+            "grasp_kind": kind,
+            "regrasp": True,
+            "regrasp_outcome": outcome,
+        }
+        return self._end_grasp_step(outcome, instance, extra)
+
+    def _end_grasp_step(self, outcome: str, picked: Instance | None, extra: dict[str, Any]):
+        """The program's last move: to the observation pose of the next phase (the arm is clear above the cradle,
+        the bin or the station); the arm is put there, and the time the move takes at the script's free-space
+        speed is charged in ``info["observation_move_s"]``. The scene settles, every instance out of the bin (but
+        one waiting at the station) is cleared."""
+        regrasp = self._phase == "regrasp"
+        arm, tcp = (self.station_arm_rad, self._station_tcp_m) if regrasp else (self.observation_arm_rad, None)
+        extra["observation_move_s"] = self._observation_move_s(arm, tcp)
+        self.robot.reset(arm)
+        self.task.settle()
+        cleared = self._clear_out_of_bin(require_rest=False, keep=self._regrasp_instance)
         return self._finish_step(outcome, picked, cleared, extra)
+
+    def _observation_move_s(self, arm_rad: np.ndarray, tcp_m: np.ndarray | None = None) -> float:
+        """Seconds a scripted straight move from the TCP's pose now to an observation pose (arm angles, TCP position;
+        None: the bin's) takes (:func:`~don_gym.sim.script.move_duration_s` at the free-space speed)."""
+        tcp = self._observation_tcp_m if tcp_m is None else tcp_m
+        distance = float(np.linalg.norm(self.robot.tcp_pose()[:3, 3] - tcp))
+        wrist_turn = float(arm_rad[6]) - float(self.robot.joint_positions()[6])
+        return move_duration_s(distance, wrist_turn, FREE_SPEED_M_S)
 
     def _step_ee(self, action: np.ndarray):
         self._ee_yaw_rad = self.robot.apply_ee_action(action, self._ee_yaw_rad)
@@ -436,7 +582,9 @@ class BinPickEnv(PickPlaceEnv):
         instance :meth:`~don_gym.sim.bin_task.BinPickTask.top_instance` prefers, those in ``exclude`` last, e.g.
         the one the last attempt failed on): its grasp point in the world and the world yaw of its +axis
         projected on the table (``flip``: plus pi). Uses the true pose: tests and baselines only."""
-        if instance is None:
+        if instance is None and self._regrasp_instance is not None:
+            chosen = self._regrasp_instance
+        elif instance is None:
             chosen = self.task.top_instance(self.target, exclude=exclude)
             if chosen is None:
                 raise DonGymError("oracle_action(): no target instance is left in play; reset() first")

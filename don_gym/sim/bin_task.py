@@ -22,7 +22,11 @@ from don_gym.sim.bullet import Bullet
 from don_gym.sim.part import PartBody, lying_rotation
 from don_gym.sim.robot import MAX_WIDTH_M
 from don_gym.sim.task import (
+    CRADLE_BASE_HALF_WIDTH_M,
+    CRADLE_CENTER_XY_M,
+    CRADLE_LENGTH_M,
     LIFT_HEIGHT_M,
+    TABLE_BOUNDS_M,
     TABLE_TOP_Z_M,
     WORKSPACE_M,
     PartContacts,
@@ -79,6 +83,20 @@ HULL_EDGE_SPACING_M = 0.004
 #: bodies would break the client's snapshot, which every reset restores.
 SHELF_CENTER_M = np.array([30.0, 30.0, -5.0])
 SHELF_SLOT_M = 0.3
+
+#: The regrasp station (:func:`station_boxes`): a free square of table of this side (m) beside the bin, away from the
+#: cradle, centred here by default; on its side towards the bin a low ledge (x, y size and height, m) whose edge
+#: faces away from the bin. A part lifted standing is set down on the ledge with its axis beyond the edge by
+#: :data:`LEDGE_OVERHANG_RADII` of its radius: it tips over the edge and comes to lie on the table below.
+STATION_SIZE_M = 0.14
+DEFAULT_STATION_XY_M = (0.45, -0.33)
+LEDGE_SIZE_M = (0.06, 0.05, 0.025)
+LEDGE_OVERHANG_RADII = 0.6
+#: A station centre is within reach when its distance from the robot's base axis lies in this range (m): a
+#: top-down grasp at the table and the observation above it.
+STATION_REACH_M = (0.30, 0.65)
+#: The wrist camera observes the station from this high above the table (m), over the ledge's foot.
+STATION_CAMERA_HEIGHT_M = 0.30
 
 DEFAULT_PARTS: dict[str, int] = {"toolcap": 3, "shaft": 2}
 DEFAULT_TARGET = "toolcap"
@@ -149,6 +167,61 @@ def check_bin_parts(counts: Mapping[str, int], models: Mapping[str, ObjectModel]
         )
 
 
+def _overlap(a: tuple[float, float, float, float], b: tuple[float, float, float, float]) -> bool:
+    """Whether two (x_min, x_max, y_min, y_max) rectangles overlap."""
+    return a[0] < b[1] and b[0] < a[1] and a[2] < b[3] and b[2] < a[3]
+
+
+def station_bounds(station_xy_m: np.ndarray) -> tuple[float, float, float, float]:
+    """(x_min, x_max, y_min, y_max) of the station's square of table, world metres."""
+    x, y, half = float(station_xy_m[0]), float(station_xy_m[1]), STATION_SIZE_M / 2
+    return x - half, x + half, y - half, y + half
+
+
+def check_station(station_xy_m: Any) -> np.ndarray:
+    """The regrasp station's centre (2,) world metres, checked: a pair of finite numbers, its square
+    (:data:`STATION_SIZE_M`) on the table, clear of the bin (walls included) and of the cradle, its centre within
+    the robot's reach (:data:`STATION_REACH_M` from the base axis). DonGymError naming it otherwise."""
+    text = f"regrasp_station={station_xy_m!r}"
+    try:
+        xy = np.asarray(station_xy_m, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        xy = np.zeros(0)
+    if xy.shape != (2,) or not np.all(np.isfinite(xy)):
+        raise DonGymError(f"{text}: expected None or (x, y), the station's centre on the table in metres")
+    bounds = station_bounds(xy)
+    x0, x1, y0, y1 = TABLE_BOUNDS_M
+    if not (x0 <= bounds[0] and bounds[1] <= x1 and y0 <= bounds[2] and bounds[3] <= y1):
+        raise DonGymError(f"{text}: its {STATION_SIZE_M:g} m square leaves the table {TABLE_BOUNDS_M}")
+    reach = float(np.linalg.norm(xy))
+    if not STATION_REACH_M[0] <= reach <= STATION_REACH_M[1]:
+        raise DonGymError(
+            f"{text} is out of reach: {reach:.2f} m from the robot's base, expected {STATION_REACH_M[0]:g} to "
+            f"{STATION_REACH_M[1]:g} m"
+        )
+    bx0, bx1, by0, by1 = bin_inner_bounds()
+    wall = BIN_WALL_THICKNESS_M
+    if _overlap(bounds, (bx0 - wall, bx1 + wall, by0 - wall, by1 + wall)):
+        raise DonGymError(f"{text}: its square {np.round(bounds, 3).tolist()} overlaps the bin; expected free table")
+    cx, cy = CRADLE_CENTER_XY_M
+    cradle = (cx - CRADLE_LENGTH_M / 2, cx + CRADLE_LENGTH_M / 2, cy - CRADLE_BASE_HALF_WIDTH_M - 0.02, cy + 0.045)
+    if _overlap(bounds, cradle):
+        raise DonGymError(f"{text}: its square is occupied by the cradle; expected free table")
+    return xy
+
+
+def station_ledge(station_xy_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ledge of a station (:data:`LEDGE_SIZE_M`): (3,) centre of its box, world m; (2,) midpoint of its free
+    edge on the table plane; (2,) unit direction from the ledge over that edge (away from the bin), the way a part
+    set down over the edge tips."""
+    xy = np.asarray(station_xy_m, dtype=np.float64)
+    away = np.array([0.0, 1.0 if xy[1] > BIN_CENTER_XY_M[1] else -1.0])
+    size_x, size_y, height = LEDGE_SIZE_M
+    edge = xy + 0.01 * -away  # the edge a centimetre from the centre, towards the bin
+    centre = np.array([*(edge - away * size_y / 2), TABLE_TOP_Z_M + height / 2])
+    return centre, edge, away
+
+
 @dataclass
 class Instance:
     """One part instance of the pile: its id (its index in :attr:`BinPickTask.instances`), the part's name
@@ -194,6 +267,7 @@ class BinPickTask(PickPlaceTask):
         counts: Mapping[str, int],
         target: str,
         grasp_points_object: Mapping[str, np.ndarray] | None = None,
+        station_xy_m: np.ndarray | None = None,
     ):
         self.sim = sim
         self.models = dict(models)
@@ -202,6 +276,9 @@ class BinPickTask(PickPlaceTask):
         self.cradle_id = self._build_cradle()
         self.bin_id = self._build_bin()
         self.shelf_id = self._build_shelf()
+        #: Centre (2,) of the regrasp station (:func:`check_station`), None without one; its ledge's body id.
+        self.station_xy_m = None if station_xy_m is None else np.asarray(station_xy_m, dtype=np.float64)
+        self.ledge_id = None if self.station_xy_m is None else self._build_ledge()
         self.instances: list[Instance] = []
         for name, model in self.models.items():
             for _ in range(int(counts[name])):
@@ -234,6 +311,28 @@ class BinPickTask(PickPlaceTask):
             ([long_x, t / 2, h / 2], [cx, y1 + t / 2, z], (0, 0, 0, 1)),
         ]
         return self.sim.create_static_boxes("bin", boxes, rgba=(0.35, 0.38, 0.45, 1.0), lateral_friction=0.5)
+
+    def _build_ledge(self) -> int:
+        centre, _, _ = station_ledge(self.station_xy_m)
+        half = [LEDGE_SIZE_M[0] / 2, LEDGE_SIZE_M[1] / 2, LEDGE_SIZE_M[2] / 2]
+        return self.sim.create_static_boxes("ledge", [(half, centre, (0, 0, 0, 1))], rgba=(0.35, 0.38, 0.45, 1.0))
+
+    def at_station(self, instance: Instance) -> bool:
+        """Its centre of mass lies over the station's square, below 5 cm above the table (not in the hand)."""
+        if self.station_xy_m is None:
+            return False
+        x0, x1, y0, y1 = station_bounds(self.station_xy_m)
+        com = instance.body.center_of_mass_world
+        return bool(x0 <= com[0] <= x1 and y0 <= com[1] <= y1 and com[2] < TABLE_TOP_Z_M + 0.05)
+
+    def check_station_free(self) -> None:
+        """DonGymError when an instance in play lies on the regrasp station (a pile must leave it free)."""
+        occupants = [i.instance_id for i in self.in_play() if self.at_station(i)]
+        if occupants:
+            raise DonGymError(
+                f"regrasp_station={self.station_xy_m.tolist()}: its area is occupied by instance(s) {occupants} of "
+                "the pile; expected free table"
+            )
 
     def _build_shelf(self) -> int:
         half = [5.0, 5.0, 0.05]
@@ -293,6 +392,22 @@ class BinPickTask(PickPlaceTask):
         instance.body.set_pose(T)
         instance.in_play = False
         instance.lifted = False
+
+    def stand(self, instance: Instance, xy_m: Iterable[float], plus_up: bool = True, turn_rad: float = 0.0) -> None:
+        """Put an instance standing on an end over world ``xy_m`` (its +axis up, or down), turned by ``turn_rad``
+        about its axis, its lowest point 1 mm above the table, and let the scene settle (tests and the regrasp
+        benchmark: a standing part on demand)."""
+        model = instance.model
+        up = np.array([0.0, 0.0, 1.0 if plus_up else -1.0])
+        R = (
+            Rotation.from_rotvec(float(turn_rad) * up).as_matrix()
+            @ Rotation.align_vectors([up], [model.plus_axis])[0].as_matrix()
+        )
+        lowest = float(((np.asarray(model.mesh.vertices) - model.center_of_mass) @ R.T)[:, 2].min())
+        com = np.array([*list(xy_m)[:2], TABLE_TOP_Z_M - lowest + 0.001])
+        instance.body.set_pose(make_transform(R, com - R @ model.center_of_mass))
+        instance.in_play = True
+        self.settle()
 
     def grasp_point_world(self, instance: Instance) -> np.ndarray:
         """(3,) world point of :func:`~don_gym.sim.task.grasp_point_object` of an instance."""

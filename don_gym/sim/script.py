@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from don_gym.objects import ObjectModel
 from don_gym.sim.bullet import Bullet
 from don_gym.sim.robot import ARM_LOWER_RAD, ARM_UPPER_RAD, MAX_WIDTH_M, MIN_TCP_HEIGHT_M, Panda, wrap_angle
 from don_gym.sim.task import (
@@ -46,6 +47,31 @@ RELEASE_RETRIES = 3
 GRASP_PHASES = ("approach", "descend", "close")
 #: Margin (rad) kept from joint 7's limits when choosing wrist angles.
 WRIST_MARGIN_RAD = 0.08
+#: What a grasp holds (the bin env's 5th action element is the index): the fingers across the part's axis (the
+#: pick env's grasp), along it (the fingers on the two end faces, the axis across the fingers), or across a part
+#: standing on an end (its axis vertical in the hand).
+GRASP_KINDS = ("across", "along", "standing")
+
+
+def end_faces_axial_position_m(model: ObjectModel) -> float:
+    """Axial position (m from the centre of mass along the +axis) of the middle between the part's two end faces:
+    where fingers closing along the axis hold it, whatever point of the axis they were aimed at."""
+    axis = np.asarray(model.plus_axis, dtype=np.float64)
+    axial = (np.asarray(model.mesh.vertices, dtype=np.float64) - model.center_of_mass) @ axis
+    return float(axial.min() + axial.max()) / 2
+
+
+def held_axial_position_m(model: ObjectModel, kind: str) -> float:
+    """Axial position (m from the centre of mass along the +axis) between the fingers after a grasp of ``kind``
+    (:data:`GRASP_KINDS`): the part's grasp point across the axis (and across a standing part), the middle of its
+    end faces along it."""
+    return end_faces_axial_position_m(model) if kind == "along" else grasp_axial_position_m(model)
+
+
+def move_duration_s(distance_m: float, wrist_turn_rad: float, speed_m_s: float) -> float:
+    """Duration (s) of a scripted straight TCP move of ``distance_m`` at ``speed_m_s`` while joint 7 turns by
+    ``wrist_turn_rad`` (at most :data:`WRIST_SPEED_RAD_S`), at least 0.1 s; without the settling after it."""
+    return max(float(distance_m) / float(speed_m_s), abs(float(wrist_turn_rad)) / WRIST_SPEED_RAD_S, 0.1)
 
 
 def min_jerk(s: float) -> float:
@@ -98,10 +124,15 @@ class GraspPlaceScript:
         self.trace = ScriptTrace()
         self._tcp = robot.tcp_pose()[:3, 3].copy()
         self._wrist = float(robot.joint_positions()[6])
-        #: TCP xy at the place: the grasp point sits this far along the target direction from the part's
-        #: centre of mass, which is what must end over the groove's centre.
+        #: TCP xy at the place of an across grasp (:meth:`place_xy_for`).
+        self.place_xy = self.place_xy_for("across")
+
+    def place_xy_for(self, kind: str) -> np.ndarray:
+        """TCP xy (m) at the place after a grasp of ``kind``: the point held between the fingers
+        (:func:`held_axial_position_m`) sits this far along the target direction from the part's centre of mass,
+        which is what must end over the groove's centre."""
         target_xy = yaw_direction(CRADLE_TARGET_YAW_RAD)[:2]
-        self.place_xy = CRADLE_CENTER_XY_M + grasp_axial_position_m(task.model) * target_xy
+        return CRADLE_CENTER_XY_M + held_axial_position_m(self.task.model, kind) * target_xy
 
     # ------------------------------------------------------------- helpers
     def _yaw_for(self, position: np.ndarray, wrist_rad: float) -> float:
@@ -136,7 +167,7 @@ class GraspPlaceScript:
         start, wrist0 = self._tcp.copy(), self._wrist
         target = np.asarray(target, dtype=np.float64)
         distance = float(np.linalg.norm(target - start))
-        duration = max(distance / speed_m_s, abs(wrist_rad - wrist0) / WRIST_SPEED_RAD_S, 0.1)
+        duration = move_duration_s(distance, wrist_rad - wrist0, speed_m_s)
         tick_s = TICK_STEPS * self.sim.time_step_s
         ticks = int(np.ceil(duration / tick_s))
         for k in range(1, ticks + 1):
@@ -171,20 +202,22 @@ class GraspPlaceScript:
             previous = width
         return self.robot.gripper_width()
 
-    def choose_wrists(self, grasp_xyz: np.ndarray, axis_yaw_rad: float) -> tuple[float, float]:
-        """Joint-7 angles at the grasp and at the place for a believed +axis yaw.
+    def choose_wrists(self, grasp_xyz: np.ndarray, axis_yaw_rad: float, kind: str = "across") -> tuple[float, float]:
+        """Joint-7 angles at the grasp and at the place for a believed +axis yaw and a grasp ``kind``.
 
-        The fingers close across the axis, so the hand yaw is the axis yaw or that plus pi;
-        the place yaw turns the believed axis onto the target direction. Of the two, take
+        The fingers close across the axis, so the hand yaw is the axis yaw or that plus pi (a grasp
+        ``"along"`` the axis: a further 90 degrees, the fingers closing along it); the place yaw turns the
+        believed axis onto the target direction, the hand turning with it. Of the two, take
         the one that keeps both wrist angles inside joint 7's range (less the margin), the
         grasp one first; in the rare case neither does, the place angle is clamped, which
         costs at most the 15 degrees the range lacks of a full turn (placement tolerance 20).
         """
-        place_xyz = np.array([*self.place_xy, 0.0])
+        place_xyz = np.array([*self.place_xy_for(kind), 0.0])
         turn = CRADLE_TARGET_YAW_RAD - axis_yaw_rad
         limit_lo, limit_hi = ARM_LOWER_RAD[6] + WRIST_MARGIN_RAD, ARM_UPPER_RAD[6] - WRIST_MARGIN_RAD
+        closing_yaw = axis_yaw_rad + (np.pi / 2 if kind == "along" else 0.0)
         best = None
-        for hand_yaw in (axis_yaw_rad, axis_yaw_rad + np.pi):
+        for hand_yaw in (closing_yaw, closing_yaw + np.pi):
             wrist_grasp = self._wrist_for(grasp_xyz, hand_yaw)
             wrist_place = self._wrist_for(place_xyz, hand_yaw + turn)
             excess_grasp = max(0.0, limit_lo - wrist_grasp, wrist_grasp - limit_hi)
@@ -231,13 +264,25 @@ class GraspPlaceScript:
         return self._yaw_for(grasp, wrist)
 
     # ---------------------------------------------------------------- run
-    def run(self, grasp_xyz: np.ndarray, axis_yaw_rad: float) -> ScriptTrace:
-        """Execute the whole grasp-and-place for the believed grasp point and +axis yaw."""
+    def run(
+        self,
+        grasp_xyz: np.ndarray,
+        axis_yaw_rad: float,
+        kind: str = "across",
+        set_down: tuple[np.ndarray, float, int] | None = None,
+    ) -> ScriptTrace:
+        """Execute the whole grasp-and-place for the believed grasp point, +axis yaw and grasp kind
+        (:data:`GRASP_KINDS`: ``"along"`` closes the fingers along the believed axis and places the part as an
+        across grasp would; ``"standing"`` is carried and placed as ``"across"``). ``set_down``: instead of the
+        place, :meth:`set_down` what was lifted there (``(xy, hand_yaw_rad, ledge_body_id)``)."""
+        if kind not in GRASP_KINDS:
+            raise ValueError(f"kind={kind!r}: expected one of {list(GRASP_KINDS)}")
         task, robot, trace = self.task, self.robot, self.trace
         part_id = task.part.body_id
         grasp = np.asarray(grasp_xyz, dtype=np.float64).copy()
         grasp[2] = max(grasp[2], TABLE_TOP_Z_M + MIN_TCP_HEIGHT_M)
-        wrist_grasp, wrist_place = self.choose_wrists(grasp, axis_yaw_rad)
+        self.place_xy = self.place_xy_for(kind)
+        wrist_grasp, wrist_place = self.choose_wrists(grasp, axis_yaw_rad, kind)
         self._grasp_phases(grasp, wrist_grasp, "close")
         trace.phases.append("lift")
         lift_to = np.array([grasp[0], grasp[1], TABLE_TOP_Z_M + CARRY_HEIGHT_M])
@@ -247,6 +292,9 @@ class GraspPlaceScript:
             # Nothing in the hand: a real program would stop here too.
             self.gripper(MAX_WIDTH_M)
             trace.left_workspace = task.left_workspace()
+            return trace
+        if set_down is not None:
+            self.set_down(*set_down)
             return trace
 
         trace.phases.append("carry")
@@ -280,9 +328,14 @@ class GraspPlaceScript:
             trace.release_retries += 1
             self.gripper(0.0)
             trace.release_width_m = self.gripper(MAX_WIDTH_M, max_time_s=1.0)
+        self._retract_and_settle()
+        return trace
+
+    def _retract_and_settle(self) -> None:
+        """Up 10 cm, then let the part come to rest (five calm ticks in a row, at most 2 s) before judging."""
+        task, trace = self.task, self.trace
         trace.phases.append("retract")
         self.move(self._tcp + np.array([0.0, 0.0, 0.10]), self._wrist, RETRACT_SPEED_M_S, settle_s=0.0)
-        # Let the part come to rest (five calm ticks in a row, at most 2 s) before judging.
         calm = 0
         for _ in range(100):
             self._step(TICK_STEPS)
@@ -290,4 +343,28 @@ class GraspPlaceScript:
             if calm >= 5:
                 break
         trace.left_workspace = task.left_workspace()
-        return trace
+
+    def set_down(self, xy: np.ndarray, hand_yaw_rad: float, ledge_id: int) -> None:
+        """Carry the part held to above ``xy`` (world m) with the hand at ``hand_yaw_rad`` (or that plus pi, the
+        wrist nearer the middle of its range), lower it until it or a finger touches the ledge ``ledge_id`` or the
+        table, open the gripper and retract: a part held standing with its axis beyond the ledge's edge tips over
+        it and comes to lie below."""
+        task, robot = self.task, self.robot
+        part_id = task.part.body_id
+        target = np.array([xy[0], xy[1], TABLE_TOP_Z_M + CARRY_HEIGHT_M])
+        wrist = min((self._wrist_for(target, yaw) for yaw in (hand_yaw_rad, hand_yaw_rad + np.pi)), key=abs)
+        wrist = float(np.clip(wrist, ARM_LOWER_RAD[6] + WRIST_MARGIN_RAD, ARM_UPPER_RAD[6] - WRIST_MARGIN_RAD))
+        self.trace.phases.append("carry")
+        self.move(target, wrist, FREE_SPEED_M_S)
+
+        def touching() -> bool:
+            for body in (ledge_id, task.table_id):
+                if self.sim.contact_points(part_id, body) or any(robot.finger_contacts(body)):
+                    return True
+            return False
+
+        self.trace.phases.append("set_down")
+        lowest = np.array([xy[0], xy[1], TABLE_TOP_Z_M + MIN_TCP_HEIGHT_M])
+        self.move(lowest, wrist, PLACE_SPEED_M_S * 2, guard=touching, settle_s=0.0)
+        self.gripper(MAX_WIDTH_M, max_time_s=1.0)
+        self._retract_and_settle()
