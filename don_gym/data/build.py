@@ -187,6 +187,8 @@ def parse_shard(text: str) -> tuple[int, int]:
 
 
 def check_run_options(workers: Any, shard: Any) -> tuple[int, int]:
+    """Check ``workers`` (at least one) and ``shard`` (``(i, n)`` with ``0 <= i < n``); returns ``(i, n)``.
+    A :class:`DatasetError` names ``--workers`` or ``--shard`` otherwise."""
     if not _is_int(workers) or workers < 1:
         raise DatasetError(f"workers={workers!r} (--workers): expected an integer >= 1")
     if not (isinstance(shard, (tuple, list)) and len(shard) == 2 and all(_is_int(v) for v in shard)):

@@ -195,6 +195,10 @@ def scene_context(
     model: ObjectModel,
     config: TrackingConfig,
 ) -> SceneContext:
+    """What the tracking protocol needs of scene ``scene`` of dataset ``data`` (number ``d`` among the pooled
+    datasets, ``scene_id`` in the results): the part's pose (of instance ``instance_id`` in a pile, None for a
+    one-part scene) and its twins' poses (the part's other instances), and the reference frame ``config``
+    chooses."""
     record = data.scenes[scene]
     T_world_object, T_world_twins = record.T_world_object, None
     if instance_id is not None:

@@ -64,6 +64,7 @@ OVERVIEW_TARGET_M = np.array([0.45, 0.15, 0.02])
 
 
 def is_integer(value: Any) -> bool:
+    """Whether ``value`` is a Python or NumPy integer (a bool is not)."""
     return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
 
 
