@@ -721,16 +721,15 @@ def grasp(
     targets = check_targets(result)
     per_episode = sorted(e["seconds"] for e in result.episodes)
     width, height = result.config.image_size
-    sensor_text = "D435 sensor" if tiny else f"D435 sensor{rendering_text(args.renderer)}"
     body = (
         f'{object_name.capitalize()}, `control="grasp"`, {width}x{height} wrist camera '
-        "(the shipped networks' training size), "
+        f"(the shipped networks' training size){rendering_text(args.renderer)}, "
         f"`AxisGraspAgent` per method, {len(config.poses)} fixed poses x {config.repeats} repeats (seeds vary "
         "sensor noise and hand-eye calibration error; every method and sensor sees the same seeds), "
         f"{args.workers} worker processes. Baseline: the oracle (optimal descriptors from the true pose). "
         "Flipped +axis = yaw error over 90 degrees (the paper's upside-down placements); grasp errors are "
         "against the true grasp point and +axis yaw.\n\n"
-        f"#### Outcomes, {sensor_text} (the paper's robot-experiment figure)\n\n"
+        "#### Outcomes, D435 sensor (the paper's robot-experiment figure)\n\n"
         + outcome_table(result)
         + "\n\nTargets (per 8 poses, scaled by the repeats):\n\n"
         + "\n".join(f"- {line}" for line in targets)
