@@ -159,6 +159,46 @@ def section_origin(text: str) -> dict[str, str]:
     return {key: match.group(1).strip() if match else "not recorded" for key, match in fields.items()}
 
 
+#: The renderers whose RGB the test-split benchmarks measure on: TinyRenderer's (every shipped network was trained on
+#: it; the sections, blocks and figures keep the names they always had) and the physically based one
+#: (:mod:`don_gym.sim.pbr`: the same scenes, depth, masks and targets, path-traced RGB; sections ``NAME-pbr``).
+MEASURED_RENDERERS = ("tiny", "pbr")
+_RENDERER_TITLES = {"tiny": "", "pbr": ", physically based rendering"}
+
+
+def renderer_suffix(renderer: str, separator: str = "-") -> str:
+    """What the name of a section, block or file adds for ``renderer``: nothing for TinyRenderer, ``-pbr`` (with
+    ``separator`` "_": ``_pbr``) for the physically based renderer, so that its runs never overwrite TinyRenderer's."""
+    if renderer not in MEASURED_RENDERERS:
+        raise ValueError(f"renderer {renderer!r}: expected one of {list(MEASURED_RENDERERS)}")
+    return "" if renderer == "tiny" else f"{separator}{renderer}"
+
+
+def rendering_text(renderer: str) -> str:
+    """What a data line adds for ``renderer`` after the sensor (nothing for TinyRenderer)."""
+    renderer_suffix(renderer)
+    return (
+        ""
+        if renderer == "tiny"
+        else f', RGB path-traced (`renderer="{renderer}"`: the same scenes and depth, only the RGB differs)'
+    )
+
+
+def renderer_title(renderer: str) -> str:
+    """What a section title adds for ``renderer`` (``", physically based rendering"``; nothing for TinyRenderer)."""
+    renderer_suffix(renderer)
+    return _RENDERER_TITLES[renderer]
+
+
+def renderer_section(name: str, title: str, renderer: str, after: str | None = None) -> tuple[str, str, str | None]:
+    """The name, title and predecessor (:func:`record_section`'s ``after``) of a section measured on the RGB of
+    ``renderer``: TinyRenderer's as given; another renderer's ``NAME-pbr``, its title saying so, right after
+    TinyRenderer's section ``name``."""
+    if renderer == "tiny":
+        return name, title, after
+    return name + renderer_suffix(renderer), title + renderer_title(renderer), name
+
+
 _SPLIT_SEEDS = re.compile(r"^Split `[^`]+`: dataset seeds ([0-9][0-9, ]*[0-9])", re.M)
 
 

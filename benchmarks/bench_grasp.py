@@ -15,6 +15,14 @@ claims, each with a computed verdict). Figures go to ``benchmarks/figures/``; da
     python benchmarks/bench_grasp.py            # full run, records RESULTS.md, README.md, docs/reproduction.md
     python benchmarks/bench_grasp.py --quick    # smoke run into a temp dir, prints the blocks, records nothing
     python benchmarks/bench_grasp.py --only tracking --split dev   # tracking on the development seeds
+    python benchmarks/bench_grasp.py --renderer pbr   # the same, on the physically rendered test split
+
+``--renderer pbr`` (issue 56) measures the same methods on the same scenes with path-traced RGB (depth, masks and
+targets unchanged): datasets ``test_pbr_<object>_<seed>`` in ``--work``, RESULTS.md sections of their own right
+after TinyRenderer's (``tracking-pbr``, ``grasp-pbr``, ``grasp-shaft-pbr``), figures and raw outputs with ``_pbr``
+in their names, and the PBR verdict blocks of docs/reproduction.md (``bench_grasp:claim-a-pbr`` ...); it writes
+no README block. Its grasp part runs the 8 fixed poses x ``--repeats`` with the D435 only: the depth-sensor
+sweep, the random poses and the varied backgrounds stay TinyRenderer's (see :func:`grasp`).
 """
 
 from __future__ import annotations
@@ -37,12 +45,17 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import (  # noqa: E402
     FIGURES,
+    MEASURED_RENDERERS,
     REPO_ROOT,
     command_line,
     commit_description,
     freeze_commit_description,
     machine_description,
     record_section,
+    renderer_section,
+    renderer_suffix,
+    renderer_title,
+    rendering_text,
     replace_block,
     require_blocks,
     split_line,
@@ -70,6 +83,7 @@ from don_gym.evaluation.splits import FRAMES_PER_SCENE, SCENES_PER_SEED, SPENT_S
 from don_gym.evaluation.tracking import TRACKING_DEPTHS, TrackingConfig, evaluate_tracking_depths
 from don_gym.evaluation.tracking_metrics import LONG_TAIL_RATIO
 from don_gym.objects import load_object  # noqa: E402
+from don_gym.sim.pbr import INSTALL_HINT, mitsuba_available  # noqa: E402
 from don_gym.stats import format_estimate, format_rate  # noqa: E402
 from don_gym.zoo import read_don_metadata, shipped_names_for  # noqa: E402
 
@@ -98,20 +112,21 @@ TRACKING_TARGETS_MM = {"toolcap": (3.0, 45.0), "shaft": (5.0, 60.0)}
 TARGET_FAR_PCT = 0.5
 
 
-def block(name: str) -> str:
-    """Name of a generated block owned by this script (``<!-- begin bench_grasp:NAME -->``)."""
-    return f"bench_grasp:{name}"
+def block(name: str, renderer: str = "tiny") -> str:
+    """Name of a generated block owned by this script (``<!-- begin bench_grasp:NAME -->``; ``NAME-pbr`` for the
+    physically rendered runs' blocks)."""
+    return f"bench_grasp:{name}{renderer_suffix(renderer)}"
 
 
-def blocks_of(part: str, objects: list[str]) -> list[str]:
-    """The blocks the part (``tracking`` or ``grasp``) writes for ``objects``: README's per object; the claims
-    of docs/reproduction.md (a) to (c) from the tracking of every object, (d) and (e) from the toolcap's
-    grasp, (f) from the shaft's."""
-    names = [block(f"{part}-{o}") for o in objects]
+def blocks_of(part: str, objects: list[str], renderer: str = "tiny") -> list[str]:
+    """The blocks the part (``tracking`` or ``grasp``) writes for ``objects``: README's per object (TinyRenderer
+    only); the claims of docs/reproduction.md (a) to (c) from the tracking of every object, (d) and (e) from the
+    toolcap's grasp, (f) from the shaft's, each renderer into its own."""
+    names = [block(f"{part}-{o}") for o in objects] if renderer == "tiny" else []
     if part == "tracking":
-        return names + ([block(f"claim-{c}") for c in "abc"] if set(OBJECTS) <= set(objects) else [])
-    names += [block(f"claim-{c}") for c in "de"] if HEADLINE_OBJECT in objects else []
-    return names + ([block("claim-f")] if "shaft" in objects else [])
+        return names + ([block(f"claim-{c}", renderer) for c in "abc"] if set(OBJECTS) <= set(objects) else [])
+    names += [block(f"claim-{c}", renderer) for c in "de"] if HEADLINE_OBJECT in objects else []
+    return names + ([block("claim-f", renderer)] if "shaft" in objects else [])
 
 
 def object_networks(object_name: str) -> list[str]:
@@ -123,8 +138,9 @@ def object_networks(object_name: str) -> list[str]:
 def preflight(args: argparse.Namespace) -> None:
     """Refuse before any work what would fail or mislead after it: missing networks, networks of one object
     trained at different image sizes (a DON is not scale invariant and every method of an object runs at one
-    wrist-camera size), missing block markers in README.md and docs/reproduction.md."""
-    problems = []
+    wrist-camera size), missing block markers in README.md and docs/reproduction.md, a physically based run
+    without Mitsuba installed."""
+    problems = [] if args.renderer != "pbr" or mitsuba_available() else [INSTALL_HINT]
     for object_name in args.objects:
         networks = object_networks(object_name)
         missing = [m for m in default_methods(object_name)[1:] if m not in networks]
@@ -140,7 +156,7 @@ def preflight(args: argparse.Namespace) -> None:
             )
     # --quick checks the markers too: it is the rehearsal of a full run.
     parts = ("tracking", "grasp") if args.only is None else (args.only,)
-    names = [n for part in parts for n in blocks_of(part, args.objects)]
+    names = [n for part in parts for n in blocks_of(part, args.objects, args.renderer)]
     try:
         require_blocks(README_PATH, [n for n in names if ":claim-" not in n])
         require_blocks(REPRODUCTION_PATH, [n for n in names if ":claim-" in n])
@@ -172,9 +188,11 @@ def tracking(args: argparse.Namespace, work: Path) -> tuple[str, dict[str, dict[
     depth. Every percentile comes with its 95% interval from resampling scenes; per object and depth the
     tails, where the far matches land, and for :data:`FIGURE_DEPTH` the per-scene shares and the gallery
     of the supervised networks' worst matches (``tracking_<object>_worst_matches.png``). The 3D errors with
-    D435 depth of all objects make the paper's figure, ``tracking_error_histograms.png``.
+    D435 depth of all objects make the paper's figure, ``tracking_error_histograms.png``. With ``--renderer pbr``
+    the same scenes with path-traced RGB (``<split>_pbr_<object>_<seed>``), every file name with ``_pbr``.
     """
     seeds = SPLIT_SEEDS[args.split]
+    tag = renderer_suffix(args.renderer, "_")  # in the names of files, so that no renderer overwrites another's
     publish = not args.quick and args.split == "test"  # benchmarks/figures shows the test split only
     parts = []
     sizes = []
@@ -186,7 +204,15 @@ def tracking(args: argparse.Namespace, work: Path) -> tuple[str, dict[str, dict[
         sizes.append(f"{object_name} {image_size[0]}x{image_size[1]}")
         start = time.perf_counter()
         datasets = build_evaluation_datasets(
-            object_name, seeds, work, args.split, args.scenes, args.frames, image_size, args.workers
+            object_name,
+            seeds,
+            work,
+            args.split,
+            args.scenes,
+            args.frames,
+            image_size,
+            args.workers,
+            renderer=args.renderer,
         )
         build_s = time.perf_counter() - start
         start = time.perf_counter()
@@ -197,13 +223,14 @@ def tracking(args: argparse.Namespace, work: Path) -> tuple[str, dict[str, dict[
         for depth, result in results.items():
             summary = result.summary()
             supervised = [n for n in result.matches if _kind(result.sources[n], n) in SUPERVISED]
-            paths = write_tracking_outputs(result, work / f"tracking_{object_name}_{depth}", gallery_methods=supervised)
+            output = work / f"tracking_{object_name}{tag}_{depth}"
+            paths = write_tracking_outputs(result, output, gallery_methods=supervised)
             figures = []
             keys = ("histogram", "cdf", "worst_matches") if depth == FIGURE_DEPTH else ("histogram", "cdf")
             for key in keys:
                 if publish and key in paths:
-                    name = f"tracking_{object_name}_{key}.png" if key == "worst_matches" else None
-                    target = FIGURES / (name or f"tracking_{object_name}_{depth}_{key}.png")
+                    name = f"tracking_{object_name}{tag}_{key}.png" if key == "worst_matches" else None
+                    target = FIGURES / (name or f"tracking_{object_name}{tag}_{depth}_{key}.png")
                     FIGURES.mkdir(exist_ok=True)
                     shutil.copyfile(paths[key], target)
                     figures.append(f"`benchmarks/figures/{target.name}`")
@@ -252,7 +279,8 @@ def tracking(args: argparse.Namespace, work: Path) -> tuple[str, dict[str, dict[
     header = (
         split_line(args.split, seeds, SPENT_SEEDS) + ", "
         f"{args.scenes} scenes x {args.frames} frames each, {len(seeds) * args.scenes} scenes per object, pooled, "
-        f"at the networks' training size ({', '.join(sizes)}), sensor `d435`. Protocol (`don_gym.evaluation`): "
+        f"at the networks' training size ({', '.join(sizes)}), sensor `d435`{rendering_text(args.renderer)}. "
+        "Protocol (`don_gym.evaluation`): "
         f"{args.points} reference pixels per scene on the object in the frame showing most of it, their "
         "descriptors and true 3D points (ideal depth, true camera pose); in every other frame where a point "
         "is visible (ideal depth within 4 mm of its projection), the best match is the argmin L2 over the "
@@ -276,12 +304,13 @@ def tracking(args: argparse.Namespace, work: Path) -> tuple[str, dict[str, dict[
         "sensor depth the last column counts far matches that ideal depth at the same pixel would put within "
         "100 mm: the depth's doing, not the descriptors'."
     )
-    figure = (FIGURES if publish else work) / "tracking_error_histograms.png"
+    figure = (FIGURES if publish else work) / f"tracking_error_histograms{tag}.png"
     figure.parent.mkdir(parents=True, exist_ok=True)
     plotting.plot_tracking_error_histograms(
         errors_by_object,
         figure,
-        title="3D tracking error per method, predicted points from D435 depth (normalised per method, stacked)",
+        title="3D tracking error per method, predicted points from D435 depth (normalised per method, stacked)"
+        + renderer_title(args.renderer),
     )
     print(f"wrote {figure}")
     if publish:
@@ -369,14 +398,14 @@ def margin_comparison_table(own: dict[str, Any], whole_image: dict[str, Any]) ->
     return "\n".join(rows)
 
 
-def _dataset_text(summary: dict[str, Any]) -> str:
+def _dataset_text(summary: dict[str, Any], renderer: str = "tiny") -> str:
     width, height = summary["image_size"]
     seeds = summary["dataset_seeds"]
     return (
         f"{summary['scenes']} {summary['split']} scenes (seeds {', '.join(map(str, seeds))}, "
         f"{summary['scenes'] // max(1, len(seeds))} scenes x {summary['frames_per_scene']} frames each; never "
-        f"trained on{', no decision has used them' if summary['split'] == 'test' else ''}), {width}x{height}, "
-        "predicted points from the D435's depth; 95% intervals from resampling the scenes"
+        f"trained on{', no decision has used them' if summary['split'] == 'test' else ''}), {width}x{height}"
+        f"{rendering_text(renderer)}, predicted points from the D435's depth; 95% intervals from resampling the scenes"
     )
 
 
@@ -501,11 +530,12 @@ def _tracking_claim_table(by_object: dict[str, dict[str, dict[str, Any]]]) -> li
     return lines
 
 
-def tracking_claim_blocks(summaries: dict[str, dict[str, Any]], source: str) -> dict[str, str]:
-    """docs/reproduction.md, claims (a) to (c), from the tracking summaries of every object; every comparison
-    is made on the 95% intervals over scenes, so a verdict can also be "not settled"."""
+def tracking_claim_blocks(summaries: dict[str, dict[str, Any]], source: str, renderer: str = "tiny") -> dict[str, str]:
+    """docs/reproduction.md, claims (a) to (c), from the tracking summaries of every object on the RGB of
+    ``renderer`` (blocks ``claim-a`` ..., ``claim-a-pbr`` ...); every comparison is made on the 95% intervals over
+    scenes, so a verdict can also be "not settled"."""
     by_object = {o: tracking_figures(s) for o, s in summaries.items()}
-    datasets = "; ".join(f"{o}: {_dataset_text(s)}" for o, s in summaries.items())
+    datasets = "; ".join(f"{o}: {_dataset_text(s, renderer)}" for o, s in summaries.items())
     table = _tracking_claim_table(by_object)
     blocks = {}
 
@@ -585,7 +615,7 @@ def tracking_claim_blocks(summaries: dict[str, dict[str, Any]], source: str) -> 
             [criterion, "", *rows, "", per_object, "", _overall(verdicts), "", f"Data: {datasets}.", "", source]
         )
 
-    blocks[block("claim-a")] = claim(
+    blocks[block("claim-a", renderer)] = claim(
         f"Criterion: per object, the self-supervised network's median 3D error modulo symmetry is below both "
         f"supervised networks' (more accurate at the median: its interval wholly below theirs), and its 3D "
         f"error has a long tail (the interval of its 99th percentile over its median at or above "
@@ -593,7 +623,7 @@ def tracking_claim_blocks(summaries: dict[str, dict[str, Any]], source: str) -> 
         verdicts_a,
         table,
     )
-    blocks[block("claim-b")] = claim(
+    blocks[block("claim-b", renderer)] = claim(
         f"Criterion: per object, each supervised network's 3D error has no long tail (the interval of its 99th "
         f"percentile over its median wholly below {LONG_TAIL_RATIO:g}), and its median 3D error modulo symmetry is "
         f"above the self-supervised network's (less accurate: interval wholly above) by at most "
@@ -612,7 +642,7 @@ def tracking_claim_blocks(summaries: dict[str, dict[str, Any]], source: str) -> 
                 f"| {object_name} | {kind} | {_with_ci(pct['p50'], ci['p50'], 3)} "
                 f"| {_with_ci(pct['p90'], ci['p90'], 3)} | {_with_ci(pct['mean'], ci['mean'], 3)} |"
             )
-    blocks[block("claim-c")] = claim(
+    blocks[block("claim-c", renderer)] = claim(
         "Criterion: per object, the self-supervised network's mean fraction closer (share of the image's pixels "
         "whose descriptor is nearer the reference than the true match's) is above both supervised networks' "
         "(interval wholly above). Overlapping intervals leave a comparison not settled.",
@@ -641,7 +671,7 @@ def _copy_grasp_figures(args: argparse.Namespace, paths: dict[str, Path], prefix
 
 def grasp(
     args: argparse.Namespace, work: Path, object_name: str
-) -> tuple[str, GraspBenchmarkResult, GraspBenchmarkResult]:
+) -> tuple[str, GraspBenchmarkResult, GraspBenchmarkResult | None]:
     """The object's grasp section: :func:`don_gym.evaluation.grasp_benchmark.run_grasp_benchmark` (``don-gym
     benchmark grasp
     --object OBJECT``): oracle and the object's shipped networks on the 8 fixed poses, ``--repeats`` seeds,
@@ -652,38 +682,48 @@ def grasp(
     For the toolcap, the README's ``don-gym benchmark grasp --quick`` then runs as a separate process and is
     timed; its episodes must equal the full run's matching ones. Returns the section, the plain run's result
     and the varied backgrounds' result.
+
+    With ``--renderer pbr``: the 8 fixed poses x ``--repeats`` at the D435 only, the same seeds as TinyRenderer's
+    run, and nothing else (varied backgrounds None): the sweep over depth sensors measures the depth, which the
+    renderer does not change, and the random poses, the varied backgrounds and the README's quick run would
+    multiply a run whose every wrist image is path-traced.
     """
+    tiny = args.renderer == "tiny"
+    tag = renderer_suffix(args.renderer, "_")
     methods = ("oracle", *object_networks(object_name))
     config = GraspBenchmarkConfig(
         object=object_name,
         methods=methods,
         repeats=args.repeats,
-        sensors=GRASP_SENSORS,
+        sensors=GRASP_SENSORS if tiny else GRASP_SENSORS[-1:],
         image_size=None,  # the networks' training size (preflight made sure they agree)
         poses=(0, 1) if args.quick else tuple(range(8)),
-        random_poses=args.random_poses,
+        random_poses=args.random_poses if tiny else 0,
+        renderer=args.renderer,
     )
     result = run_grasp_benchmark(config, workers=args.workers)
-    prefix = "grasp" if object_name == HEADLINE_OBJECT else f"grasp_{object_name}"
-    figures = _copy_grasp_figures(args, write_grasp_outputs(result, work / f"grasp_{object_name}"), prefix)
-    # The fixed poses over varied backgrounds, at the headline sensor; repeat r has the plain run's seed of
-    # repeat r (the same part pose, noise and calibration error), so the background is the only difference.
-    backgrounds_config = replace(
-        result.config,
-        sensors=(GRASP_SENSORS[-1],),
-        repeats=1 if args.quick else args.background_repeats,
-        random_poses=0,
-        backgrounds=GRASP_BACKGROUNDS,
-    )
-    backgrounds = run_grasp_benchmark(backgrounds_config, workers=args.workers)
-    backgrounds_paths = write_grasp_outputs(backgrounds, work / f"grasp_{object_name}_backgrounds")
-    figures += _copy_grasp_figures(args, backgrounds_paths, f"{prefix}_backgrounds")
+    prefix = ("grasp" if object_name == HEADLINE_OBJECT else f"grasp_{object_name}") + tag
+    figures = _copy_grasp_figures(args, write_grasp_outputs(result, work / f"grasp_{object_name}{tag}"), prefix)
+    backgrounds = None
+    if tiny:
+        # The fixed poses over varied backgrounds, at the headline sensor; repeat r has the plain run's seed of
+        # repeat r (the same part pose, noise and calibration error), so the background is the only difference.
+        backgrounds_config = replace(
+            result.config,
+            sensors=(GRASP_SENSORS[-1],),
+            repeats=1 if args.quick else args.background_repeats,
+            random_poses=0,
+            backgrounds=GRASP_BACKGROUNDS,
+        )
+        backgrounds = run_grasp_benchmark(backgrounds_config, workers=args.workers)
+        backgrounds_paths = write_grasp_outputs(backgrounds, work / f"grasp_{object_name}_backgrounds")
+        figures += _copy_grasp_figures(args, backgrounds_paths, f"{prefix}_backgrounds")
     targets = check_targets(result)
     per_episode = sorted(e["seconds"] for e in result.episodes)
     width, height = result.config.image_size
     body = (
         f'{object_name.capitalize()}, `control="grasp"`, {width}x{height} wrist camera '
-        "(the shipped networks' training size), "
+        f"(the shipped networks' training size){rendering_text(args.renderer)}, "
         f"`AxisGraspAgent` per method, {len(config.poses)} fixed poses x {config.repeats} repeats (seeds vary "
         "sensor noise and hand-eye calibration error; every method and sensor sees the same seeds), "
         f"{args.workers} worker processes. Baseline: the oracle (optimal descriptors from the true pose). "
@@ -695,7 +735,18 @@ def grasp(
         + "\n".join(f"- {line}" for line in targets)
         + "\n\n#### Why episodes were not placed\n\n"
         + miss_table(result)
-        + "\n\n#### Depth-sensor sweep (ideal -> D435)\n\n"
+    )
+    if not tiny:
+        body += (
+            "\n\nThe depth-sensor sweep, the random poses and the varied backgrounds are TinyRenderer's only "
+            f"(section `{grasp_section(object_name)}`). {len(result.episodes)} episodes in "
+            f"{result.seconds / 60:.1f} min; per episode median {per_episode[len(per_episode) // 2]:.1f} s (in a "
+            "worker, env and model set-up included in the first)."
+            + (f" Figures: {', '.join(figures)}." if figures else "")
+        )
+        return body, result, None
+    body += (
+        "\n\n#### Depth-sensor sweep (ideal -> D435)\n\n"
         + sweep_table(result)
         + (
             f"\n\n#### {config.random_poses} random poses, D435 sensor\n\n"
@@ -851,7 +902,8 @@ def _grasp_rows(result: GraspBenchmarkResult, kinds: list[str]) -> list[str]:
 def _grasp_data(result: GraspBenchmarkResult) -> str:
     width, height = result.config.image_size
     return (
-        f"Data: {result.config.object}, sensor `{result.headline_sensor}`, {width}x{height} wrist camera, "
+        f"Data: {result.config.object}, sensor `{result.headline_sensor}`, {width}x{height} wrist camera"
+        f"{rendering_text(result.config.renderer)}, "
         f"{len(result.config.poses)} fixed poses x {result.config.repeats} repeats = "
         f"{result.episodes_per_cell('fixed')} episodes per method (95% Wilson intervals)."
     )
@@ -873,15 +925,16 @@ def _meets_supervised_target(result: GraspBenchmarkResult, kind: str) -> list[st
 
 
 def grasp_claim_blocks(results: dict[str, GraspBenchmarkResult], source: Callable[[str], str]) -> dict[str, str]:
-    """docs/reproduction.md, claims (d) and (e) from the toolcap's result, (f) from the shaft's; ``source``
-    gives the provenance line of an object's grasp section."""
+    """docs/reproduction.md, claims (d) and (e) from the toolcap's result, (f) from the shaft's, into the blocks of
+    the results' renderer (``claim-d``, ``claim-d-pbr``, ...); ``source`` gives the provenance line of an object's
+    grasp section."""
     blocks = {}
     kinds = ["oracle", *SUPERVISED, SELF_SUPERVISED]
     toolcap = results.get(HEADLINE_OBJECT)
     if toolcap is not None:
         episodes, need_grasped, need_placed = _targets(toolcap)
         failed = [f for kind in SUPERVISED for f in _meets_supervised_target(toolcap, kind)]
-        blocks[block("claim-d")] = _grasp_claim(
+        blocks[block("claim-d", toolcap.config.renderer)] = _grasp_claim(
             f"Criterion: each supervised network grasps the toolcap in all {episodes} episodes at the fixed "
             f"poses (the paper's 8 of 8, scaled: at least {need_grasped:g}) and grasps and places it in at "
             f"least {need_placed:g} (7 of 8, scaled). The oracle is shown as the reference.",
@@ -907,7 +960,7 @@ def grasp_claim_blocks(results: dict[str, GraspBenchmarkResult], source: Callabl
                         f"self-supervised grasped and placed {ssl['counts']['grasp_and_place']}, "
                         f"{kind} {s['counts']['grasp_and_place']}"
                     )
-        blocks[block("claim-e")] = _grasp_claim(
+        blocks[block("claim-e", toolcap.config.renderer)] = _grasp_claim(
             "Criterion: on the toolcap, the self-supervised network flips the part's +axis (grasps it "
             "the wrong way round, so that it is placed upside down) in more episodes than each supervised "
             "network, and grasps and places it in fewer.",
@@ -921,7 +974,7 @@ def grasp_claim_blocks(results: dict[str, GraspBenchmarkResult], source: Callabl
         episodes, need_grasped, need_placed = _targets(shaft)
         networks = [k for k in (*SUPERVISED, SELF_SUPERVISED) if k in _by_kind(shaft)] or [*SUPERVISED]
         failed = [f for kind in networks for f in _meets_supervised_target(shaft, kind)]
-        blocks[block("claim-f")] = _grasp_claim(
+        blocks[block("claim-f", shaft.config.renderer)] = _grasp_claim(
             f"Criterion: every network, the self-supervised one included, meets on the shaft what the paper "
             f"reports for the supervised networks on the toolcap: all {episodes} episodes at the fixed poses "
             f"grasped (at least {need_grasped:g}), at least {need_placed:g} grasped and placed.",
@@ -936,9 +989,34 @@ def grasp_claim_blocks(results: dict[str, GraspBenchmarkResult], source: Callabl
 # --- main -----------------------------------------------------------------------------------------
 
 
-def grasp_section(object_name: str) -> str:
-    """The object's RESULTS.md section (the headline object keeps the name it always had)."""
-    return "grasp" if object_name == HEADLINE_OBJECT else f"grasp-{object_name}"
+def grasp_section(object_name: str, renderer: str = "tiny") -> str:
+    """The object's RESULTS.md section (the headline object keeps the name it always had; ``-pbr`` added for the
+    physically based renderer)."""
+    return ("grasp" if object_name == HEADLINE_OBJECT else f"grasp-{object_name}") + renderer_suffix(renderer)
+
+
+def tracking_section(split: str, renderer: str = "tiny") -> tuple[str, str, str | None]:
+    """The tracking section of a run: its name (``tracking``, ``tracking-dev``, ``tracking-pbr``,
+    ``tracking-dev-pbr``), its title and the section it goes right after (None: where it is, or at the end)."""
+    if split == "test":
+        return renderer_section(
+            "tracking", "Tracking error of the shipped DONs (paper's protocol), test split", renderer
+        )
+    title = "Tracking error of the shipped DONs (paper's protocol), development split"
+    return renderer_section("tracking-dev", title, renderer, after="tracking")
+
+
+def grasp_title(object_name: str, renderer: str = "tiny") -> tuple[str, str | None]:
+    """The title of an object's grasp section and the section it goes right after: TinyRenderer's shaft after
+    the toolcap's, a physically based run's after TinyRenderer's of the same object."""
+    if renderer == "tiny":
+        after = None if object_name == HEADLINE_OBJECT else grasp_section(HEADLINE_OBJECT)
+        return (
+            f"Grasp and place: {object_name}, 8 fixed poses, depth-sensor sweep, random poses, varied backgrounds",
+            after,
+        )
+    title = f"Grasp and place: {object_name}, 8 fixed poses, D435 sensor{renderer_title(renderer)}"
+    return title, grasp_section(object_name)
 
 
 def write_blocks(path: Path, blocks: dict[str, str], quick: bool) -> None:
@@ -972,6 +1050,15 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--objects", nargs="+", default=list(OBJECTS), choices=OBJECTS, help="objects of both parts")
     parser.add_argument("--only", choices=("tracking", "grasp"), default=None)
+    parser.add_argument(
+        "--renderer",
+        choices=MEASURED_RENDERERS,
+        default="tiny",
+        help="RGB of every scene and episode: tiny (TinyRenderer, default; what the networks were trained on) or "
+        "pbr (path-traced, the pbr extra: the same scenes with datasets <split>_pbr_<object>_<seed>, sections "
+        "tracking-pbr, grasp-pbr, grasp-shaft-pbr, blocks bench_grasp:claim-X-pbr of docs/reproduction.md, no "
+        "README block; grasp at the 8 fixed poses with the D435 only)",
+    )
     parser.add_argument("--quick", action="store_true", help="tiny smoke run in a temp dir; records nothing")
     args = parser.parse_args()
     freeze_commit_description()  # before this run writes README.md and docs/reproduction.md
@@ -987,15 +1074,12 @@ def main() -> None:
     if args.only in (None, "tracking"):
         body, summaries = tracking(args, work)
         print(body)
-        if args.split == "test":
-            record("tracking", "Tracking error of the shipped DONs (paper's protocol), test split", body)
-        else:
-            title = "Tracking error of the shipped DONs (paper's protocol), development split"
-            record("tracking-dev", title, body, after="tracking")
+        section, title, after = tracking_section(args.split, args.renderer)
+        record(section, title, body, after=after)
         source = provenance("benchmarks/RESULTS.md", "tracking")
         # The README and docs/reproduction.md quote the test split only; --quick prints their blocks, writes none.
         quote = args.split == "test" or args.quick
-        if quote:
+        if quote and args.renderer == "tiny":
             write_blocks(
                 README_PATH,
                 {block(f"tracking-{o}"): tracking_block(o, s, source) for o, s in summaries.items()},
@@ -1004,7 +1088,11 @@ def main() -> None:
         if quote and set(OBJECTS) <= set(summaries):
             write_blocks(
                 REPRODUCTION_PATH,
-                tracking_claim_blocks(summaries, provenance("../benchmarks/RESULTS.md", "tracking")),
+                tracking_claim_blocks(
+                    summaries,
+                    provenance("../benchmarks/RESULTS.md", tracking_section("test", args.renderer)[0]),
+                    args.renderer,
+                ),
                 args.quick,
             )
     if args.only in (None, "grasp"):
@@ -1012,17 +1100,16 @@ def main() -> None:
         for object_name in args.objects:
             body, results[object_name], backgrounds[object_name] = grasp(args, work, object_name)
             print(body)
-            section = grasp_section(object_name)
-            record(
-                section,
-                f"Grasp and place: {object_name}, 8 fixed poses, depth-sensor sweep, random poses, varied backgrounds",
-                body,
-                after=None if object_name == HEADLINE_OBJECT else grasp_section(HEADLINE_OBJECT),
-            )
-            source = provenance("benchmarks/RESULTS.md", section)
-            readme_block = grasp_block(results[object_name], source, backgrounds[object_name])
-            write_blocks(README_PATH, {block(f"grasp-{object_name}"): readme_block}, args.quick)
-        claims = grasp_claim_blocks(results, lambda o: provenance("../benchmarks/RESULTS.md", grasp_section(o)))
+            section = grasp_section(object_name, args.renderer)
+            title, after = grasp_title(object_name, args.renderer)
+            record(section, title, body, after=after)
+            if args.renderer == "tiny":
+                source = provenance("benchmarks/RESULTS.md", section)
+                readme_block = grasp_block(results[object_name], source, backgrounds[object_name])
+                write_blocks(README_PATH, {block(f"grasp-{object_name}"): readme_block}, args.quick)
+        claims = grasp_claim_blocks(
+            results, lambda o: provenance("../benchmarks/RESULTS.md", grasp_section(o, args.renderer))
+        )
         write_blocks(REPRODUCTION_PATH, claims, args.quick)
 
 

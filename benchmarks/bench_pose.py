@@ -15,6 +15,11 @@ and the BOP results files of every method to ``--work``.
     python benchmarks/bench_pose.py --quick    # 1 development scene x 6 frames per object, temp dir, records nothing
     python benchmarks/bench_pose.py --split dev   # development seeds, section "pose-dev"
     python benchmarks/bench_pose.py --only grasp  # only the grasp comparison, section "pose-grasp"
+    python benchmarks/bench_pose.py --renderer pbr --only pose   # the physically rendered test split, "pose-pbr"
+
+``--renderer pbr`` (issue 56): the same scenes with path-traced RGB (datasets ``<split>_pbr_<object>_<seed>``, the
+ones ``bench_grasp.py --renderer pbr`` builds when both get the same ``--work``), into sections of their own right
+after TinyRenderer's (``pose-pbr``, ``pose-dev-pbr``, ``pose-grasp-pbr``), figures and outputs with ``_pbr``.
 
 The grasp comparison (section ``pose-grasp``, :func:`don_gym.evaluation.grasp_benchmark.run_grasp_benchmark`, as
 ``don-gym benchmark grasp --methods M pose:M ...``): every method's descriptors used twice on the 8 fixed poses,
@@ -36,10 +41,14 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import (  # noqa: E402
     FIGURES,
+    MEASURED_RENDERERS,
     OtherProcessLoad,
     freeze_commit_description,
     kept_object_subsections,
     record_section,
+    renderer_section,
+    renderer_suffix,
+    rendering_text,
     split_line,
 )
 
@@ -55,6 +64,7 @@ from don_gym.evaluation.grasp_report import outcome_table, write_grasp_outputs
 from don_gym.evaluation.pose_evaluation import evaluate_pose, pose_table, write_pose_outputs  # noqa: E402
 from don_gym.evaluation.splits import FRAMES_PER_SCENE, SCENES_PER_SEED, SPENT_SEEDS, SPLIT_SEEDS  # noqa: E402
 from don_gym.objects import load_object  # noqa: E402
+from don_gym.sim.pbr import INSTALL_HINT, mitsuba_available  # noqa: E402
 from don_gym.zoo import read_don_metadata, shipped_names_for  # noqa: E402
 
 OBJECTS = ("toolcap", "shaft")
@@ -91,7 +101,15 @@ def run_object(args: argparse.Namespace, work: Path, object_name: str, publish: 
     image_size = training_image_size({n: read_don_metadata(n).image_size for n in networks})
     start = time.perf_counter()
     datasets = build_evaluation_datasets(
-        object_name, args.seeds, work, args.split, args.scenes, args.frames, image_size, args.workers
+        object_name,
+        args.seeds,
+        work,
+        args.split,
+        args.scenes,
+        args.frames,
+        image_size,
+        args.workers,
+        renderer=args.renderer,
     )
     build_s = time.perf_counter() - start
     start = time.perf_counter()
@@ -100,9 +118,10 @@ def run_object(args: argparse.Namespace, work: Path, object_name: str, publish: 
         results = evaluate_pose(datasets, ["oracle", *networks], depths=DEPTHS, progress=not args.quick)
     evaluation_s = time.perf_counter() - start
     parts = []
+    tag = renderer_suffix(args.renderer, "_")  # in the names of files, so that no renderer overwrites another's
     for depth, result in results.items():
         summary = result.summary()
-        paths = write_pose_outputs(result, work / f"pose_{object_name}_{depth}")
+        paths = write_pose_outputs(result, work / f"pose_{object_name}{tag}_{depth}")
         lines = [f"### {object_name}, {DEPTH_TEXT[depth]}", "", pose_table(summary)]
         if depth == "sensor":
             missed = check_targets(summary)
@@ -113,7 +132,7 @@ def run_object(args: argparse.Namespace, work: Path, object_name: str, publish: 
             ]
         if publish:
             FIGURES.mkdir(exist_ok=True)
-            target = FIGURES / f"pose_{object_name}_{depth}_recall.png"
+            target = FIGURES / f"pose_{object_name}{tag}_{depth}_recall.png"
             shutil.copyfile(paths["recall"], target)
             lines += ["", f"Figure: `benchmarks/figures/{target.name}`."]
         else:
@@ -138,9 +157,10 @@ def grasp_comparison(args: argparse.Namespace, work: Path, object_name: str) -> 
         repeats=args.grasp_repeats,
         sensors=("d435",),
         poses=(0, 1) if args.quick else tuple(range(8)),
+        renderer=args.renderer,
     )
     result = run_grasp_benchmark(config, workers=args.workers, progress=not args.quick)
-    paths = write_grasp_outputs(result, work / f"pose_grasp_{object_name}")
+    paths = write_grasp_outputs(result, work / f"pose_grasp_{object_name}{renderer_suffix(args.renderer, '_')}")
     return (
         f"### {object_name}\n\n{outcome_table(result)}\n\n"
         f"{len(result.episodes)} episodes in {result.seconds:.0f} s on {result.workers} workers; "
@@ -176,11 +196,20 @@ def main() -> None:
     parser.add_argument(
         "--grasp-repeats", type=int, default=1, help="seeds per fixed pose and method in the grasp comparison"
     )
+    parser.add_argument(
+        "--renderer",
+        choices=MEASURED_RENDERERS,
+        default="tiny",
+        help="RGB of every scene and episode: tiny (TinyRenderer, default) or pbr (path-traced, the pbr extra: "
+        "datasets <split>_pbr_<object>_<seed>, sections pose-pbr, pose-dev-pbr and pose-grasp-pbr)",
+    )
     parser.add_argument("--quick", action="store_true", help="tiny smoke run in a temp dir; records nothing")
     args = parser.parse_args()
     freeze_commit_description()
     torch.set_num_threads(1)
     args.objects = [o for o in OBJECTS if o in args.objects]
+    if args.renderer == "pbr" and not mitsuba_available():
+        sys.exit(f"bench_pose.py: {INSTALL_HINT}")
     missing = [m for o in args.objects for m in default_methods(o)[1:] if m not in object_networks(o)]
     if missing and not args.quick:
         sys.exit(f"bench_pose.py: shipped networks missing: {missing}; run benchmarks/train_shipped.py first")
@@ -194,7 +223,8 @@ def main() -> None:
     publish = not args.quick and args.split == "test"
     header = (
         split_line(args.split, seeds, SPENT_SEEDS) + ", "
-        f"{args.scenes} scenes x {args.frames} frames each, pooled, at the networks' training size, sensor `d435`. "
+        f"{args.scenes} scenes x {args.frames} frames each, pooled, at the networks' training size, sensor `d435`"
+        f"{rendering_text(args.renderer)}. "
         "Protocol (`don_gym.evaluation.pose_evaluation`): one pose estimate of the part per frame and method "
         "(`don_gym.perception.pose`: part pixels matched to the part's surface rings in descriptor space, ratio "
         "test; with depth, RANSAC fit of the axis to the matched depth points and point-to-point ICP; without depth, "
@@ -209,18 +239,19 @@ def main() -> None:
         run_pose(args, work, header, publish)
     if args.only != "pose":
         publish_grasp = not args.quick and args.split == "test"
+        section, title, after = renderer_section(
+            "pose-grasp", "Grasping from a 6D pose beside the two-descriptor agent", args.renderer, after="pose"
+        )
         measured = {o: grasp_comparison(args, work, o) for o in args.objects}
         grasp_body = (
             "Each method's descriptors used twice: by the two-descriptor `AxisGraspAgent` (the paper's agent) and "
             "by `PoseGraspAgent` (`pose:` methods: a grasp along the axis of the 6D pose estimated with "
             "`don_gym.perception.pose` from the same descriptor image and the D435 depth).\n\n"
-            + "\n\n".join(with_kept_objects("pose-grasp", measured, keep=publish_grasp))
+            + "\n\n".join(with_kept_objects(section, measured, keep=publish_grasp))
         )
         print(grasp_body)
         if publish_grasp:
-            record_section(
-                "pose-grasp", "Grasping from a 6D pose beside the two-descriptor agent", grasp_body, after="pose"
-            )
+            record_section(section, title, grasp_body, after=after)
 
 
 def with_kept_objects(section: str, measured: dict[str, str], keep: bool) -> list[str]:
@@ -231,17 +262,23 @@ def with_kept_objects(section: str, measured: dict[str, str], keep: bool) -> lis
     return [measured.get(o) or kept[o] for o in OBJECTS if o in measured or o in kept]
 
 
+def pose_section(split: str, renderer: str = "tiny") -> tuple[str, str, str | None]:
+    """The pose section of a run: its name (``pose``, ``pose-dev``, ``pose-pbr``, ``pose-dev-pbr``), its title
+    and the section it goes right after (None: where it is, or at the end)."""
+    if split == "test":
+        return renderer_section("pose", "6D pose from descriptors (BOP metrics), test split", renderer)
+    title = "6D pose from descriptors (BOP metrics), development split"
+    return renderer_section("pose-dev", title, renderer, after="pose")
+
+
 def run_pose(args: argparse.Namespace, work: Path, header: str, publish: bool) -> None:
-    """Section ``pose`` (``pose-dev``): every object's pose evaluation, printed and recorded."""
-    section = "pose" if args.split == "test" else "pose-dev"
+    """Section ``pose`` (``pose-dev``, ``pose-pbr``, ...): every object's pose evaluation, printed and recorded."""
+    section, title, after = pose_section(args.split, args.renderer)
     measured = {o: run_object(args, work, o, publish) for o in args.objects}
     body = header + "\n\n" + "\n\n".join(with_kept_objects(section, measured, keep=not args.quick))
     print(body)
     if not args.quick:
-        if args.split == "test":
-            record_section("pose", "6D pose from descriptors (BOP metrics), test split", body)
-        else:
-            record_section("pose-dev", "6D pose from descriptors (BOP metrics), development split", body, after="pose")
+        record_section(section, title, body, after=after)
 
 
 if __name__ == "__main__":

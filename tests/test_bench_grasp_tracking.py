@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from don_gym.evaluation.tracking_metrics import MATCH_CATEGORIES, TrackingMatches
 
@@ -118,3 +119,54 @@ def test_the_development_split_shows_each_margin_beside_the_whole_image_search()
     # The fixture's self-supervised network has a fifth of its matches far in both searches.
     far_whole, far_margin = float(ssl[2].split()[0]), float(ssl[3].split()[0])
     assert 15.0 < far_whole == far_margin < 25.0
+
+
+def test_the_physically_rendered_runs_write_sections_and_blocks_of_their_own() -> None:
+    """--renderer pbr: every section is TinyRenderer's name with -pbr, placed right after it; the claims go to
+    blocks of their own whose markers docs/reproduction.md holds; no README block; TinyRenderer's names as before."""
+    objects = ["toolcap", "shaft"]
+    assert bench_grasp.blocks_of("tracking", objects) == [
+        "bench_grasp:tracking-toolcap", "bench_grasp:tracking-shaft",
+        "bench_grasp:claim-a", "bench_grasp:claim-b", "bench_grasp:claim-c",
+    ]  # fmt: skip
+    assert bench_grasp.blocks_of("tracking", objects, "pbr") == [f"bench_grasp:claim-{c}-pbr" for c in "abc"]
+    assert bench_grasp.blocks_of("grasp", objects, "pbr") == [f"bench_grasp:claim-{c}-pbr" for c in "def"]
+    assert bench_grasp.blocks_of("grasp", ["shaft"], "pbr") == ["bench_grasp:claim-f-pbr"]
+    pbr_blocks = [n for part in ("tracking", "grasp") for n in bench_grasp.blocks_of(part, objects, "pbr")]
+    bench_grasp.require_blocks(bench_grasp.REPRODUCTION_PATH, pbr_blocks)  # raises where a marker is missing
+
+    assert bench_grasp.tracking_section("test") == (
+        "tracking", "Tracking error of the shipped DONs (paper's protocol), test split", None
+    )  # fmt: skip
+    name, title, after = bench_grasp.tracking_section("test", "pbr")
+    assert (name, after) == ("tracking-pbr", "tracking") and title.endswith("test split, physically based rendering")
+    assert bench_grasp.tracking_section("dev")[::2] == ("tracking-dev", "tracking")
+    assert bench_grasp.tracking_section("dev", "pbr")[::2] == ("tracking-dev-pbr", "tracking-dev")
+    assert [bench_grasp.grasp_section(o) for o in objects] == ["grasp", "grasp-shaft"]
+    assert [bench_grasp.grasp_section(o, "pbr") for o in objects] == ["grasp-pbr", "grasp-shaft-pbr"]
+    assert bench_grasp.grasp_title("toolcap")[1] is None and bench_grasp.grasp_title("shaft")[1] == "grasp"
+    assert bench_grasp.grasp_title("shaft", "pbr")[1] == "grasp-shaft"
+    assert bench_grasp.grasp_title("toolcap", "pbr")[0].endswith("physically based rendering")
+
+    import bench_pose
+
+    assert bench_pose.pose_section("test") == ("pose", "6D pose from descriptors (BOP metrics), test split", None)
+    assert bench_pose.pose_section("test", "pbr")[::2] == ("pose-pbr", "pose")
+    assert bench_pose.pose_section("dev", "pbr")[::2] == ("pose-dev-pbr", "pose-dev")
+    with pytest.raises(ValueError, match="egl"):
+        bench_grasp.renderer_suffix("egl")  # an EGL run would have no sections to go to
+
+
+def test_the_physically_rendered_claims_name_their_blocks_and_rendering() -> None:
+    summaries = {o: _summary(o, (1.2, 2.4)) for o in ("toolcap", "shaft")}
+    tiny = bench_grasp.tracking_claim_blocks(summaries, "*source*")
+    pbr = bench_grasp.tracking_claim_blocks(summaries, "*source*", "pbr")
+    assert list(tiny) == [f"bench_grasp:claim-{c}" for c in "abc"]
+    assert list(pbr) == [f"bench_grasp:claim-{c}-pbr" for c in "abc"]
+    for c in "abc":
+        assert "path-traced" not in tiny[bench_grasp.block(f"claim-{c}")]
+        # The same figures give the same verdict; only the data line names the rendering.
+        with_rendering = tiny[bench_grasp.block(f"claim-{c}")].replace("640x480,", "640x480" + (
+            bench_grasp.rendering_text("pbr") + ","
+        ))  # fmt: skip
+        assert pbr[bench_grasp.block(f"claim-{c}", "pbr")] == with_rendering

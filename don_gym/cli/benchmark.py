@@ -95,7 +95,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="wrist camera WIDTHxHEIGHT (default: the size the networks were trained at; 320x240 for the oracle alone)",
     )
-    grasp.add_argument("--renderer", default="tiny", help="PyBullet renderer: tiny (default) or egl")
+    grasp.add_argument(
+        "--renderer",
+        default="tiny",
+        help="renderer of the wrist camera's RGB: tiny (TinyRenderer, default), egl (OpenGL) or pbr (path-traced, "
+        "the pbr extra)",
+    )
     grasp.add_argument(
         "--backgrounds",
         default="plain",
@@ -230,7 +235,12 @@ def register_bin(kinds: argparse._SubParsersAction) -> None:
         help="wrist camera WIDTHxHEIGHT (default: the size the networks were trained at; 320x240 for the oracles "
         "alone; --quick: 160x120 for the oracles alone)",
     )
-    parser.add_argument("--renderer", default="tiny", help="PyBullet renderer: tiny (default) or egl")
+    parser.add_argument(
+        "--renderer",
+        default="tiny",
+        help="renderer of the wrist camera's RGB: tiny (TinyRenderer, default), egl (OpenGL) or pbr (path-traced, "
+        "the pbr extra)",
+    )
     parser.add_argument("--quick", action="store_true", help="2 piles, the two oracles at 160x120 (about a minute)")
     parser.add_argument("--workers", type=int, default=2, help="worker processes (default: 2)")
     parser.add_argument("--device", default="cpu", help="device of the networks: cpu (default), cuda, cuda:N or auto")
