@@ -48,6 +48,7 @@ def make_ppo_env(
     keypoints: str = "don",
     noise: Any = None,
     keypoint_kwargs: dict[str, Any] | None = None,
+    window_px: int | None = None,
 ) -> gym.Env:
     """The PPO baseline's env: ``control="grasp"`` with keypoints, flat observations
     (:class:`~don_gym.wrappers.KeypointFeatures`) and normalised actions in a frame set by the keypoints
@@ -58,9 +59,10 @@ def make_ppo_env(
     the pipeline, not a perception result), a shipped DON name such as "toolcap/supervised-edge",
     or a checkpoint path; ``keypoints``/``noise``: see the module docstring. ``reward_type="dense"``
     gives failed grasps a graded penalty (the success rate is measured either way by ``info["is_success"]``).
+    ``window_px``: the DON sees a window of that many pixels around the part (:func:`make_keypoint_env`).
     """
     env = make_keypoint_env(
-        object, keypoints, keypoint_model, noise, image_size, keypoint_kwargs=keypoint_kwargs,
+        object, keypoints, keypoint_model, noise, image_size, keypoint_kwargs=keypoint_kwargs, window_px=window_px,
         control="grasp", sensor=sensor, reward_type=reward_type,
     )  # fmt: skip
     env = KeypointGraspAction(env, frame=action_frame)
@@ -85,6 +87,7 @@ def make_sac_env(
     goal: str | None = None,
     keypoint_kwargs: dict[str, Any] | None = None,
     hand_starts: dict[str, float] | None = None,
+    window_px: int | None = None,
 ) -> gym.Env:
     """The SAC baseline's env: ``control="ee"``, keypoints of every wrist-camera frame (relative to the
     TCP) plus the robot state as one flat vector; the keypoints move with the camera and vanish when
@@ -93,16 +96,17 @@ def make_sac_env(
     sparse goal reward instead of ``reward_type``'s: the env of
     :func:`~don_gym.wrappers.goals.make_goal_env`, which the registered ``DONToolcapLift-v0`` makes.
     ``hand_starts``: shares of episodes that start with the hand at or on the part
-    (:class:`~don_gym.wrappers.HandStarts`; for training)."""
+    (:class:`~don_gym.wrappers.HandStarts`; for training). ``window_px``: the DON sees a window of that many pixels
+    around the part (:func:`~don_gym.wrappers.goals.make_keypoint_env`)."""
     if goal is not None and goal not in GOALS:
         raise DonGymError(f"goal={goal!r} is unknown; expected None or one of {list(GOALS)}")
     if goal is not None:
         return make_goal_env(
             object, goal, keypoints, keypoint_model, noise, image_size, max_steps, hand_starts, keypoint_kwargs,
-            sensor=sensor, reward_type=reward_type,
+            sensor=sensor, reward_type=reward_type, window_px=window_px,
         )  # fmt: skip
     env = make_keypoint_env(
-        object, keypoints, keypoint_model, noise, image_size, hand_starts, keypoint_kwargs,
+        object, keypoints, keypoint_model, noise, image_size, hand_starts, keypoint_kwargs, window_px,
         control="ee", sensor=sensor, reward_type=reward_type, max_steps=max_steps,
     )  # fmt: skip
     return _sac_head(env, goal)
@@ -251,6 +255,11 @@ def make_batched_sac_vec_env(
     if kwargs.get("keypoints", "don") != "don":
         raise DonGymError(
             f"batched envs run a DON; keypoints={kwargs['keypoints']!r} needs none (use vectorize='dummy')"
+        )
+    if kwargs.get("window_px") is not None:
+        raise DonGymError(
+            f"window_px={kwargs['window_px']!r}: batched envs see whole frames (each window follows its own part); "
+            "use vectorize='dummy' or 'subproc' for windowed observations"
         )
     goal = kwargs.get("goal")
     if goal is not None and goal not in GOALS:

@@ -200,6 +200,7 @@ def make_keypoint_env(
     image_size: tuple[int, int] | None = (160, 120),
     hand_starts: dict[str, float] | None = None,
     keypoint_kwargs: dict[str, Any] | None = None,
+    window_px: int | None = None,
     **env_kwargs: Any,
 ) -> gym.Env:
     """``DONPick-v0`` of ``object`` (``env_kwargs``: its arguments, e.g. ``control``, ``sensor``) with the part's
@@ -209,13 +210,16 @@ def make_keypoint_env(
     ``keypoint_model``: "oracle", a shipped DON name such as "toolcap/supervised-edge", or a checkpoint path;
     for ``"simulated"`` its measured noise model unless ``noise`` names another (None with the oracle: exact
     keypoints, hidden outside the camera's view). ``image_size``: the wrist camera's, used only by ``"don"``
-    and None (the others render nothing). ``hand_starts``: :class:`HandStarts` shares, innermost, so that a vector
-    env's automatic resets draw a start too. ``keypoint_kwargs``: more arguments of
+    and None (the others render nothing), as is ``window_px`` (the env's: a window of that image around the part,
+    placed by :class:`~don_gym.wrappers.KeypointObservation`). ``hand_starts``: :class:`HandStarts` shares,
+    innermost, so that a vector env's automatic resets draw a start too. ``keypoint_kwargs``: more arguments of
     :class:`~don_gym.wrappers.KeypointObservation`.
     """
     if keypoints is not None and keypoints not in KEYPOINT_SOURCES:
         raise DonGymError(f"keypoints={keypoints!r} is unknown; expected one of {list(KEYPOINT_SOURCES)}")
     images = keypoints in ("don", None)
+    if images and window_px is not None:
+        env_kwargs["window_px"] = window_px
     env = gym.make("DONPick-v0", object=object, image_size=image_size if images else None, **env_kwargs)
     if hand_starts:
         env = HandStarts(env, hand_starts)

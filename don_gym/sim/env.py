@@ -223,11 +223,12 @@ class PickPlaceEnv(gym.Env):
       Pixels only: the backdrop quads have no collision shape.
     - ``render_mode``: None or "rgb_array" (a fixed overview camera); ``render_size``: its (width, height).
     - ``max_steps``: ee-mode truncation.
-    - ``window_px``: None (default), the whole wrist frame; an integer, a ``window_px`` x ``window_px`` window of it
-      rendered at the frame's own intrinsics (principal point shifted, :meth:`~don_gym.geometry.CameraIntrinsics.window`),
-      so a network trained on full frames sees the part at the same scale at a fraction of the cost. The window is
-      centred on :attr:`window_centre_world` (:meth:`set_window_centre`; the workspace's centre after each reset), and
-      ``camera_intrinsics`` are the window's; :meth:`full_frame_images` renders the whole frame on demand.
+    - ``window_px``: None (default), the whole wrist frame; an integer, a ``window_px`` x ``window_px`` window of
+      it rendered at the frame's own intrinsics (principal point shifted,
+      :meth:`~don_gym.geometry.CameraIntrinsics.window`), so a network trained on full frames sees the part at the
+      same scale at a fraction of the cost. The window is centred on :attr:`window_centre_world`
+      (:meth:`set_window_centre`; the workspace's centre after each reset), and ``camera_intrinsics`` are the
+      window's; :meth:`full_frame_images` renders the whole frame on demand.
       :class:`~don_gym.wrappers.KeypointObservation` places it from the keypoints it tracks.
 
     ## Info
@@ -339,7 +340,9 @@ class PickPlaceEnv(gym.Env):
             entries["rgb"] = spaces.Box(0, 255, shape=(height, width, 3), dtype=np.uint8)
             entries["depth"] = spaces.Box(0.0, DEPTH_OBS_MAX_M, shape=(height, width), dtype=np.float32)
         big = 1e4
-        entries["camera_intrinsics"] = spaces.Box(0.0, big, shape=(6,), dtype=np.float32)
+        # A window's principal point may lie outside it (window_px), so cx and cy may be negative.
+        low = np.array([0.0, 0.0, -big, -big, 0.0, 0.0], dtype=np.float32)
+        entries["camera_intrinsics"] = spaces.Box(low, np.full(6, big, np.float32), dtype=np.float32)
         entries["camera_pose"] = spaces.Box(-10.0, 10.0, shape=(4, 4), dtype=np.float32)
         entries["joint_positions"] = spaces.Box(-4.0, 4.0, shape=(9,), dtype=np.float32)
         entries["ee_pose"] = spaces.Box(-10.0, 10.0, shape=(7,), dtype=np.float32)
