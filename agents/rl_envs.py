@@ -17,6 +17,7 @@ from gymnasium import spaces
 from don_gym.errors import DonGymError
 from don_gym.wrappers.goals import GOALS, KeypointGoal, make_goal_env, make_keypoint_env
 from don_gym.wrappers.images import DescriptorImage
+from don_gym.wrappers.memory import KeypointMemory
 from don_gym.wrappers.rl import KeypointFeatures, KeypointGraspAction
 
 __all__ = [
@@ -69,7 +70,9 @@ def make_ppo_env(
     return KeypointFeatures(env, relative_to="centroid", robot_state=False)
 
 
-def _sac_head(env: gym.Env, goal: str | None) -> gym.Env:
+def _sac_head(env: gym.Env, goal: str | None, memory: bool = False) -> gym.Env:
+    if memory:
+        env = KeypointMemory(env, max_age_steps=env.unwrapped.max_steps)
     if goal is None:
         return KeypointFeatures(env, relative_to="tcp", robot_state=True)
     return KeypointGoal(env, goal=goal)
@@ -88,6 +91,7 @@ def make_sac_env(
     keypoint_kwargs: dict[str, Any] | None = None,
     hand_starts: dict[str, float] | None = None,
     window_px: int | None = None,
+    memory: bool = False,
 ) -> gym.Env:
     """The SAC baseline's env: ``control="ee"``, keypoints of every wrist-camera frame (relative to the
     TCP) plus the robot state as one flat vector; the keypoints move with the camera and vanish when
@@ -97,16 +101,17 @@ def make_sac_env(
     :func:`~don_gym.wrappers.goals.make_goal_env`, which the registered ``DONToolcapLift-v0`` makes.
     ``hand_starts``: shares of episodes that start with the hand at or on the part
     (:class:`~don_gym.wrappers.HandStarts`; for training). ``window_px``: the DON sees a window of that many pixels
-    around the part (:func:`~don_gym.wrappers.goals.make_keypoint_env`)."""
+    around the part (:func:`~don_gym.wrappers.goals.make_keypoint_env`). ``memory``: the keypoints' last seen places
+    and ages too (:class:`~don_gym.wrappers.KeypointMemory`)."""
     if goal is not None and goal not in GOALS:
         raise DonGymError(f"goal={goal!r} is unknown; expected None or one of {list(GOALS)}")
     if goal is not None:
         return make_goal_env(
             object, goal, keypoints, keypoint_model, noise, image_size, max_steps, hand_starts, keypoint_kwargs,
-            sensor=sensor, reward_type=reward_type, window_px=window_px,
+            sensor=sensor, reward_type=reward_type, window_px=window_px, memory=memory,
         )  # fmt: skip
     env = make_keypoint_env(
-        object, keypoints, keypoint_model, noise, image_size, hand_starts, keypoint_kwargs, window_px,
+        object, keypoints, keypoint_model, noise, image_size, hand_starts, keypoint_kwargs, window_px, memory,
         control="ee", sensor=sensor, reward_type=reward_type, max_steps=max_steps,
     )  # fmt: skip
     return _sac_head(env, goal)
@@ -288,7 +293,8 @@ def make_batched_sac_vec_env(
     except Exception:
         vector_env.close()
         raise
-    return make_batched_vec_env(keypoint_env, functools.partial(_sac_head, goal=goal), monitor=monitor)
+    head = functools.partial(_sac_head, goal=goal, memory=bool(kwargs.get("memory", False)))
+    return make_batched_vec_env(keypoint_env, head, monitor=monitor)
 
 
 def check_n_envs(n_envs: Any) -> None:
