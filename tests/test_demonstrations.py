@@ -27,8 +27,9 @@ def run_expert(goal: str, seed: int, max_steps: int) -> tuple[bool, int]:
     obs, info = env.reset(seed=seed)
     steps = 0
     try:
-        for steps in range(1, max_steps + 1):
+        while steps < max_steps:
             obs, _, terminated, truncated, info = env.step(expert.act(obs))
+            steps += 1
             if terminated or truncated:
                 break
     finally:
