@@ -138,8 +138,10 @@ class EndEffectorExpert:
         if all(contacts.fingers):
             return self._holding(obs, tcp, hand_yaw, axis_yaw, contacts)
         placement = task.placement(contacts)
-        if self.goal == "place" and placement.in_cradle and bool(
-            within_placement_tolerance(placement.distance_xy_m, placement.axis_error_rad)
+        if (
+            self.goal == "place"
+            and placement.in_cradle
+            and bool(within_placement_tolerance(placement.distance_xy_m, placement.axis_error_rad))
         ):
             # Released in the cradle: open and retract.
             up = np.array([tcp[0], tcp[1], TABLE_TOP_Z_M + CARRY_HEIGHT_M])
