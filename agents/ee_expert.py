@@ -53,6 +53,9 @@ AT_GRASP_XY_M, AT_GRASP_Z_M, AT_YAW_RAD = 0.004, 0.007, 0.08
 CLOSING_XY_M, CLOSING_Z_M = 0.010, 0.015
 #: Go down to the part only once above it within this (m) and turned within AT_YAW_RAD x this.
 ABOVE_XY_M = 0.012
+#: The part's centre of mass over the cradle's centre within this (m): lower it; within NEAR_CRADLE_M line it up
+#: where it is.
+OVER_CRADLE_M, NEAR_CRADLE_M = 0.005, 0.03
 #: Open enough to go down around the part (m).
 OPEN_WIDTH_M = MAX_WIDTH_M - 0.005
 #: Margin (rad) kept from joint 7's limits when choosing which of the two yaws across the axis to grasp with.
@@ -190,11 +193,13 @@ class EndEffectorExpert:
         xy_error = float(np.linalg.norm(com[:2] - CRADLE_CENTER_XY_M))
         if contacts.cradle or any(self.base.robot.finger_contacts(task.cradle_id)):
             return np.array([0.0, 0.0, 0.0, 0.0, 1.0], dtype=np.float32)  # on the cradle: let go
-        if xy_error < 0.004 and yaw_error < AT_YAW_RAD:
+        if xy_error < OVER_CRADLE_M and yaw_error < AT_YAW_RAD:
             lowest = np.array([*over, TABLE_TOP_Z_M + CRADLE_APEX_HEIGHT_M + MIN_TCP_HEIGHT_M])
             step = LOWER_STEP_M if tcp[2] < TABLE_TOP_Z_M + CRADLE_APEX_HEIGHT_M + 0.07 else CARRY_STEP_M
             return np.array([*_toward(lowest, tcp, step), dyaw, -1.0], dtype=np.float32)
-        if tcp[2] < carry_z - 0.01 and xy_error > 0.02:
+        if xy_error < NEAR_CRADLE_M:
+            target = np.array([*over, tcp[2]])  # nearly there: line up at this height, no climbing back
+        elif tcp[2] < carry_z - 0.01:
             target = np.array([tcp[0], tcp[1], carry_z])  # up first, then across
         else:
             target = np.array([*over, carry_z])
