@@ -30,6 +30,8 @@ __all__ = [
     "DEMO_FORMAT",
     "OBSERVATION_KINDS",
     "Demonstrations",
+    "RecordSettings",
+    "kind_env",
     "kind_name",
     "read_demonstrations",
     "record_demonstrations",
@@ -61,7 +63,8 @@ def _check_kinds(kinds: Sequence[str]) -> list[str]:
         fixed = kind in ("state", "true", "rgbd")
         if not fixed and not (len(source) == 2 and source[0] in ("simulated", "don") and source[1]):
             raise DonGymError(f"observation kind {kind!r} is unknown; expected one of {list(OBSERVATION_KINDS)}")
-        out.append(kind)
+        if kind not in out:
+            out.append(kind)
     if "state" not in out:
         out.insert(0, "state")  # the replay is checked against it
     return out
@@ -77,12 +80,13 @@ class RecordSettings:
     sensor: str = "d435"
 
 
-def _kind_env(kind: str, part: str, goal: str, settings: RecordSettings) -> gym.Env | None:
-    """The env whose observations are ``kind``'s (None for "state", read from the expert's own env)."""
+def kind_env(kind: str, part: str, goal: str, settings: RecordSettings, observe_state: bool = False) -> gym.Env | None:
+    """The env (``control="ee"``, ``goal``'s episode length) whose observations are ``kind``'s; for "state" None
+    (the recorder reads it from the expert's own env), or with ``observe_state`` the env without images."""
     steps = EPISODE_STEPS[goal]
     common = {"control": "ee", "max_steps": steps, "sensor": settings.sensor}
     if kind == "state":
-        return None
+        return make_keypoint_env(part, None, image_size=None, **common) if observe_state else None
     if kind == "rgbd":
         return make_keypoint_env(part, None, image_size=settings.rgbd_size, **common)
     if kind == "true":
@@ -169,7 +173,7 @@ def record_demonstrations(
         raise DonGymError(f"episodes={episodes!r}: expected a positive number of demonstrations")
     kinds, settings = _check_kinds(kinds), settings or RecordSettings()
     expert_env = make_goal_env(part, goal=goal, keypoints="true", max_steps=EPISODE_STEPS[goal], sensor=settings.sensor)
-    kind_envs = {kind: _kind_env(kind, part, goal, settings) for kind in kinds}
+    kind_envs = {kind: kind_env(kind, part, goal, settings) for kind in kinds}
     expert = EndEffectorExpert(expert_env, goal)
     path = Path(path)
     attempts, kept = 0, 0
