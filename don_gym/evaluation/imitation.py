@@ -72,7 +72,10 @@ def features(kind: str, obs: dict[str, np.ndarray]) -> np.ndarray:
         return robot.astype(np.float32)
     if kind == "state":
         pose = np.asarray(obs["part_pose"], dtype=np.float64)
-        return np.concatenate([robot, pose[:3] / POSITION_UNIT_M, pose[3:]]).astype(np.float32)
+        # The rotation's first two columns, not the quaternion: continuous, no sign to flip (Zhou et al. 2019).
+        rotation = Rotation.from_quat(pose[3:]).as_matrix()[:, :2].T.ravel()
+        tcp = np.asarray(obs["ee_pose"], dtype=np.float64)[:3]
+        return np.concatenate([robot, (pose[:3] - tcp) / POSITION_UNIT_M, rotation]).astype(np.float32)
     tcp = np.asarray(obs["ee_pose"], dtype=np.float64)[:3]
     points = (np.asarray(obs["keypoint_points"], dtype=np.float64) - tcp) / POSITION_UNIT_M
     confidence = np.asarray(obs["keypoint_confidence"], dtype=np.float64)
