@@ -107,19 +107,20 @@ class EndEffectorExpert:
         q1 = np.arctan2(position[1] - base_xy[1], position[0] - base_xy[0])
         return wrap_angle(q1 - yaw_rad + np.pi / 4)
 
-    def _grasp_yaw(self, grasp: np.ndarray, axis_yaw: float) -> float:
-        """Of the two hand yaws across the part's axis, the one whose wrist angles at the grasp and (for "place")
-        after turning the part onto the target direction stay farthest inside joint 7's range."""
+    def _grasp_yaw(self, grasp: np.ndarray, axis_yaw: float, hand_yaw: float) -> float:
+        """Of the two hand yaws across the part's axis, the one nearer the hand's yaw now, unless its wrist angle at
+        the grasp or (for "place") after turning the part onto the target direction leaves joint 7's range less a
+        margin: a smooth function of the state wherever the range allows, which a cloned policy can follow."""
         limit = EE_WRIST_MAX_RAD - WRIST_MARGIN_RAD
         place = np.array([*CRADLE_CENTER_XY_M, 0.0])
         best, best_cost = axis_yaw, np.inf
-        for hand_yaw in (axis_yaw, axis_yaw + np.pi):
-            wrists = [self._wrist(grasp, hand_yaw)]
+        for candidate in (axis_yaw, axis_yaw + np.pi):
+            wrists = [self._wrist(grasp, candidate)]
             if self.goal == "place":
-                wrists.append(self._wrist(place, hand_yaw + wrap_angle(CRADLE_TARGET_YAW_RAD - axis_yaw)))
-            cost = sum(100.0 * max(0.0, abs(w) - limit) + 0.01 * abs(w) for w in wrists)
+                wrists.append(self._wrist(place, candidate + wrap_angle(CRADLE_TARGET_YAW_RAD - axis_yaw)))
+            cost = sum(100.0 * max(0.0, abs(w) - limit) for w in wrists) + abs(wrap_angle(candidate - hand_yaw))
             if cost < best_cost:
-                best, best_cost = hand_yaw, cost
+                best, best_cost = candidate, cost
         return wrap_angle(best)
 
     def _turn(self, tcp: np.ndarray, hand_yaw: float, wanted_yaw: float) -> tuple[float, float]:
@@ -151,7 +152,7 @@ class EndEffectorExpert:
             return np.array([*_toward(up, tcp, FREE_STEP_M), 0.0, 1.0], dtype=np.float32)
         grasp = T[:3, :3] @ self.grasp_point_object + T[:3, 3]
         grasp[2] = max(grasp[2], TABLE_TOP_Z_M + MIN_TCP_HEIGHT_M)
-        dyaw, yaw_error = self._turn(tcp, hand_yaw, self._grasp_yaw(grasp, axis_yaw))
+        dyaw, yaw_error = self._turn(tcp, hand_yaw, self._grasp_yaw(grasp, axis_yaw, hand_yaw))
         xy_error = float(np.linalg.norm(tcp[:2] - grasp[:2]))
         on_table = any(robot.finger_contacts(task.table_id))
         width = robot.gripper_width()

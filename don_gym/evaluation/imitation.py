@@ -60,8 +60,12 @@ POSITION_UNIT_M = 0.05
 
 # ------------------------------------------------------------------------------ features
 def _robot_features(obs: dict[str, np.ndarray]) -> np.ndarray:
+    """TCP position, the hand's yaw as (cos, sin) (the top-down hand's quaternion flips sign as the yaw passes pi)
+    and the finger opening."""
     ee = np.asarray(obs["ee_pose"], dtype=np.float64).reshape(7)
-    return np.concatenate([ee[:3] / POSITION_UNIT_M, ee[3:], np.asarray(obs["gripper_width"]).reshape(1) / 0.04])
+    hand_x = Rotation.from_quat(ee[3:]).as_matrix()[:2, 0]
+    width = np.asarray(obs["gripper_width"], dtype=np.float64).reshape(1) / 0.04
+    return np.concatenate([ee[:3] / POSITION_UNIT_M, hand_x / max(np.linalg.norm(hand_x), 1e-9), width])
 
 
 def features(kind: str, obs: dict[str, np.ndarray]) -> np.ndarray:
