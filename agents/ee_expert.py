@@ -49,9 +49,9 @@ CARRY_STEP_M = 0.025
 LOWER_STEP_M = 0.006
 #: At the grasp point: within these of it (m) and of the hand yaw across the axis (rad) the fingers start to
 #: close; once they are closing, within the looser CLOSING_* they go on closing.
-AT_GRASP_XY_M, AT_GRASP_Z_M, AT_YAW_RAD = 0.004, 0.007, 0.08
+AT_GRASP_XY_M, AT_GRASP_Z_M, AT_YAW_RAD = 0.004, 0.007, 0.12
 CLOSING_XY_M, CLOSING_Z_M = 0.010, 0.015
-#: Go down to the part only once above it within this (m) and turned within AT_YAW_RAD x this.
+#: Go down to the part once above it within this (m), turning on the way down (the fingers are open wide).
 ABOVE_XY_M = 0.012
 #: The part's centre of mass over the cradle's centre within this (m): lower it; within NEAR_CRADLE_M line it up
 #: where it is.
@@ -167,7 +167,7 @@ class EndEffectorExpert:
             # Closed on nothing (or a lost part): open, and rise clear of the part meanwhile.
             target = np.array([tcp[0], tcp[1], max(tcp[2], hover[2])])
             return np.array([*_toward(target, tcp, APPROACH_STEP_M), dyaw, 1.0], dtype=np.float32)
-        above = xy_error < ABOVE_XY_M and yaw_error < 2 * AT_YAW_RAD
+        above = xy_error < ABOVE_XY_M
         if above and tcp[2] <= hover[2] + 0.01:
             move = _toward(grasp, tcp, APPROACH_STEP_M)
         elif above:
