@@ -58,6 +58,8 @@ ABOVE_XY_M = 0.012
 OVER_CRADLE_M, NEAR_CRADLE_M = 0.005, 0.03
 #: Open enough to go down around the part (m).
 OPEN_WIDTH_M = MAX_WIDTH_M - 0.005
+#: Share of the yaw error turned per step.
+YAW_GAIN = 0.5
 #: Margin (rad) kept from joint 7's limits when choosing which of the two yaws across the axis to grasp with.
 WRIST_MARGIN_RAD = 0.15
 
@@ -127,7 +129,8 @@ class EndEffectorExpert:
         """(dyaw action, error in rad) turning the hand to ``wanted_yaw`` the way joint 7 can go (no wrapping
         through its limits)."""
         error = self._wrist(tcp, hand_yaw) - self._wrist(tcp, wanted_yaw)  # the yaw grows as the wrist angle falls
-        return float(np.clip(error / EE_YAW_STEP_RAD, -1.0, 1.0)), abs(error)
+        # Half the error a step: the env turns from the yaw it commanded last, which the measured yaw lags.
+        return float(np.clip(YAW_GAIN * error / EE_YAW_STEP_RAD, -1.0, 1.0)), abs(error)
 
     # ------------------------------------------------------------------- act
     def act(self, obs: Any = None) -> np.ndarray:
