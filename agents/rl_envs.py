@@ -17,6 +17,7 @@ from gymnasium import spaces
 from don_gym.errors import DonGymError
 from don_gym.wrappers.goals import GOALS, KeypointGoal, make_goal_env, make_keypoint_env
 from don_gym.wrappers.images import DescriptorImage
+from don_gym.wrappers.memory import KeypointMemory
 from don_gym.wrappers.rl import KeypointFeatures, KeypointGraspAction
 
 __all__ = [
@@ -48,6 +49,7 @@ def make_ppo_env(
     keypoints: str = "don",
     noise: Any = None,
     keypoint_kwargs: dict[str, Any] | None = None,
+    window_px: int | None = None,
 ) -> gym.Env:
     """The PPO baseline's env: ``control="grasp"`` with keypoints, flat observations
     (:class:`~don_gym.wrappers.KeypointFeatures`) and normalised actions in a frame set by the keypoints
@@ -58,16 +60,19 @@ def make_ppo_env(
     the pipeline, not a perception result), a shipped DON name such as "toolcap/supervised-edge",
     or a checkpoint path; ``keypoints``/``noise``: see the module docstring. ``reward_type="dense"``
     gives failed grasps a graded penalty (the success rate is measured either way by ``info["is_success"]``).
+    ``window_px``: the DON sees a window of that many pixels around the part (:func:`make_keypoint_env`).
     """
     env = make_keypoint_env(
-        object, keypoints, keypoint_model, noise, image_size, keypoint_kwargs=keypoint_kwargs,
+        object, keypoints, keypoint_model, noise, image_size, keypoint_kwargs=keypoint_kwargs, window_px=window_px,
         control="grasp", sensor=sensor, reward_type=reward_type,
     )  # fmt: skip
     env = KeypointGraspAction(env, frame=action_frame)
     return KeypointFeatures(env, relative_to="centroid", robot_state=False)
 
 
-def _sac_head(env: gym.Env, goal: str | None) -> gym.Env:
+def _sac_head(env: gym.Env, goal: str | None, memory: bool = False) -> gym.Env:
+    if memory:
+        env = KeypointMemory(env, max_age_steps=env.unwrapped.max_steps)
     if goal is None:
         return KeypointFeatures(env, relative_to="tcp", robot_state=True)
     return KeypointGoal(env, goal=goal)
@@ -85,6 +90,8 @@ def make_sac_env(
     goal: str | None = None,
     keypoint_kwargs: dict[str, Any] | None = None,
     hand_starts: dict[str, float] | None = None,
+    window_px: int | None = None,
+    memory: bool = False,
 ) -> gym.Env:
     """The SAC baseline's env: ``control="ee"``, keypoints of every wrist-camera frame (relative to the
     TCP) plus the robot state as one flat vector; the keypoints move with the camera and vanish when
@@ -93,16 +100,18 @@ def make_sac_env(
     sparse goal reward instead of ``reward_type``'s: the env of
     :func:`~don_gym.wrappers.goals.make_goal_env`, which the registered ``DONToolcapLift-v0`` makes.
     ``hand_starts``: shares of episodes that start with the hand at or on the part
-    (:class:`~don_gym.wrappers.HandStarts`; for training)."""
+    (:class:`~don_gym.wrappers.HandStarts`; for training). ``window_px``: the DON sees a window of that many pixels
+    around the part (:func:`~don_gym.wrappers.goals.make_keypoint_env`). ``memory``: the keypoints' last seen places
+    and ages too (:class:`~don_gym.wrappers.KeypointMemory`)."""
     if goal is not None and goal not in GOALS:
         raise DonGymError(f"goal={goal!r} is unknown; expected None or one of {list(GOALS)}")
     if goal is not None:
         return make_goal_env(
             object, goal, keypoints, keypoint_model, noise, image_size, max_steps, hand_starts, keypoint_kwargs,
-            sensor=sensor, reward_type=reward_type,
+            sensor=sensor, reward_type=reward_type, window_px=window_px, memory=memory,
         )  # fmt: skip
     env = make_keypoint_env(
-        object, keypoints, keypoint_model, noise, image_size, hand_starts, keypoint_kwargs,
+        object, keypoints, keypoint_model, noise, image_size, hand_starts, keypoint_kwargs, window_px, memory,
         control="ee", sensor=sensor, reward_type=reward_type, max_steps=max_steps,
     )  # fmt: skip
     return _sac_head(env, goal)
@@ -252,6 +261,11 @@ def make_batched_sac_vec_env(
         raise DonGymError(
             f"batched envs run a DON; keypoints={kwargs['keypoints']!r} needs none (use vectorize='dummy')"
         )
+    if kwargs.get("window_px") is not None:
+        raise DonGymError(
+            f"window_px={kwargs['window_px']!r}: batched envs see whole frames (each window follows its own part); "
+            "use vectorize='dummy' or 'subproc' for windowed observations"
+        )
     goal = kwargs.get("goal")
     if goal is not None and goal not in GOALS:
         raise DonGymError(f"goal={goal!r} is unknown; expected None or one of {list(GOALS)}")
@@ -279,7 +293,8 @@ def make_batched_sac_vec_env(
     except Exception:
         vector_env.close()
         raise
-    return make_batched_vec_env(keypoint_env, functools.partial(_sac_head, goal=goal), monitor=monitor)
+    head = functools.partial(_sac_head, goal=goal, memory=bool(kwargs.get("memory", False)))
+    return make_batched_vec_env(keypoint_env, head, monitor=monitor)
 
 
 def check_n_envs(n_envs: Any) -> None:

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from don_gym.errors import DonGymError
+
 # RealSense D435 colour stream at 640x480 (typical factory calibration): focal lengths
 # in pixels and principal point. Used by CameraIntrinsics.d435 and scaled to other
 # image sizes.
@@ -126,6 +128,47 @@ class CameraIntrinsics:
     def from_array(cls, values: np.ndarray) -> CameraIntrinsics:
         fx, fy, cx, cy, width, height = (float(v) for v in np.asarray(values).reshape(6))
         return cls(fx, fy, cx, cy, int(round(width)), int(round(height)))
+
+    def window(self, origin_px: tuple[int, int], width: int, height: int) -> CameraIntrinsics:
+        """The intrinsics of the ``width`` x ``height`` window of this image whose top-left pixel is
+        ``origin_px`` = (u0, v0): the same focal lengths, the principal point shifted by the origin, so that a
+        camera rendered at them sees the pixels ``[v0:v0 + height, u0:u0 + width]`` of the full image at its
+        scale. The window must lie inside the image (DonGymError otherwise)."""
+        u0, v0 = (int(v) for v in origin_px)
+        if not (1 <= width <= self.width and 1 <= height <= self.height):
+            raise DonGymError(
+                f"window of {width}x{height} px: larger than the {self.width}x{self.height} frame; expected at most "
+                "the frame's size"
+            )
+        if not (0 <= u0 <= self.width - width and 0 <= v0 <= self.height - height):
+            raise DonGymError(
+                f"window origin {(u0, v0)}: a {width}x{height} window leaves the {self.width}x{self.height} frame"
+            )
+        return CameraIntrinsics(self.fx, self.fy, self.cx - u0, self.cy - v0, int(width), int(height))
+
+
+def window_origin_px(frame: CameraIntrinsics, window: CameraIntrinsics) -> tuple[int, int]:
+    """(u0, v0): the full frame's pixel at a window's top-left pixel, for a window made by
+    :meth:`CameraIntrinsics.window` (its principal point shifted by whole pixels)."""
+    return int(round(frame.cx - window.cx)), int(round(frame.cy - window.cy))
+
+
+def image_window(frame: CameraIntrinsics, centre_uv: np.ndarray | None, size_px: int) -> CameraIntrinsics:
+    """The ``size_px`` x ``size_px`` window of ``frame`` (:meth:`CameraIntrinsics.window`) centred as near as
+    the frame allows on ``centre_uv`` (u, v) pixels (None or not finite: the frame's centre); a window larger
+    than the frame is a DonGymError."""
+    size = int(size_px)
+    if size > frame.width or size > frame.height or size < 1:
+        raise DonGymError(
+            f"window_px={size_px!r}: larger than the {frame.width}x{frame.height} frame; expected 1.."
+            f"{min(frame.width, frame.height)} pixels"
+        )
+    centre = np.array([(frame.width - 1) / 2, (frame.height - 1) / 2])
+    if centre_uv is not None and np.all(np.isfinite(np.asarray(centre_uv, dtype=np.float64))):
+        centre = np.asarray(centre_uv, dtype=np.float64).reshape(2)
+    u0 = int(np.clip(np.round(centre[0] - (size - 1) / 2), 0, frame.width - size))
+    v0 = int(np.clip(np.round(centre[1] - (size - 1) / 2), 0, frame.height - size))
+    return frame.window((u0, v0), size, size)
 
 
 def project_points(intrinsics: CameraIntrinsics, points_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -616,3 +616,31 @@ def plot_pose_recalls(
     if title:
         fig.suptitle(title, fontsize=10)
     return _save(fig, path)
+
+
+def plot_success_against_demonstrations(
+    rates: Mapping[str, Sequence[tuple[int, float, float, float]]],
+    path: str | Path,
+    *,
+    title: str | None = None,
+) -> Path:
+    """Success rate against the number of demonstrations, one line per input: ``rates[input]`` lists
+    ``(demonstrations, rate, low, high)`` with the rate's interval, all in [0, 1]; the x axis is logarithmic."""
+    fig = _new_figure(6.0, 3.8, dpi=110, layout="constrained")
+    ax = fig.add_subplot()
+    for index, (name, points) in enumerate(rates.items()):
+        n, rate, low, high = (np.array(v, dtype=np.float64) for v in zip(*sorted(points), strict=True))
+        ax.plot(n, rate, "o-", color=f"C{index % 10}", label=name)
+        ax.fill_between(n, low, high, color=f"C{index % 10}", alpha=0.15)
+    ax.set_xscale("log")
+    ticks = sorted({int(n) for points in rates.values() for n, *_ in points})
+    ax.set_xticks(ticks, [str(n) for n in ticks])
+    ax.minorticks_off()
+    ax.set_xlabel("demonstrations")
+    ax.set_ylabel("success rate (95% Wilson interval)")
+    ax.set_ylim(-0.02, 1.02)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    if title:
+        ax.set_title(title, fontsize=10)
+    return _save(fig, path)

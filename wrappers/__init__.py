@@ -6,6 +6,8 @@
   world metres, ``keypoint_confidence``); by default the two axis-end rings of :func:`axis_end_targets`.
 - :class:`KeypointFeatures` and :class:`KeypointGraspAction`: flat observations and normalised grasp
   actions for RL policies.
+- :class:`KeypointMemory`: each keypoint's last seen world position and its age in steps, for the descent
+  that the wrist camera cannot follow.
 - :class:`SimulatedKeypoints` (a model of the DON, no rendering), :class:`KeypointGoal` (goals for HER),
   :class:`DescriptorImage` (uint8 descriptor images for CNN policies), :class:`VectorKeypointObservation`
   (one DON pass per vector-env step).
@@ -37,6 +39,7 @@ from don_gym.wrappers.descriptors import DESCRIPTOR_BOUND, DescriptorObservation
 from don_gym.wrappers.goals import HandStarts, KeypointGoal, make_goal_env, make_keypoint_env
 from don_gym.wrappers.images import DescriptorImage
 from don_gym.wrappers.keypoints import KeypointObservation, KeypointSettings
+from don_gym.wrappers.memory import KeypointMemory
 from don_gym.wrappers.rl import KeypointFeatures, KeypointGraspAction
 from don_gym.wrappers.simulated_keypoints import KeypointNoiseModel, SimulatedKeypoints
 from don_gym.wrappers.vector import VectorKeypointObservation
@@ -51,6 +54,7 @@ __all__ = [
     "KeypointFeatures",
     "KeypointGoal",
     "KeypointGraspAction",
+    "KeypointMemory",
     "KeypointNoiseModel",
     "KeypointObservation",
     "KeypointSettings",

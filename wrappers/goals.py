@@ -24,6 +24,7 @@ from don_gym.perception.descriptor_sources import DEFAULT_AXIS_FRACTIONS, axis_e
 from don_gym.sim.env import HAND_STARTS
 from don_gym.sim.task import seated_pose, within_placement_tolerance
 from don_gym.wrappers.keypoints import POINT_BOUND_M, KeypointObservation
+from don_gym.wrappers.memory import KeypointMemory
 from don_gym.wrappers.rl import KeypointFeatures
 from don_gym.wrappers.simulated_keypoints import SimulatedKeypoints, axis_points_world
 
@@ -200,6 +201,8 @@ def make_keypoint_env(
     image_size: tuple[int, int] | None = (160, 120),
     hand_starts: dict[str, float] | None = None,
     keypoint_kwargs: dict[str, Any] | None = None,
+    window_px: int | None = None,
+    memory: bool = False,
     **env_kwargs: Any,
 ) -> gym.Env:
     """``DONPick-v0`` of ``object`` (``env_kwargs``: its arguments, e.g. ``control``, ``sensor``) with the part's
@@ -209,25 +212,33 @@ def make_keypoint_env(
     ``keypoint_model``: "oracle", a shipped DON name such as "toolcap/supervised-edge", or a checkpoint path;
     for ``"simulated"`` its measured noise model unless ``noise`` names another (None with the oracle: exact
     keypoints, hidden outside the camera's view). ``image_size``: the wrist camera's, used only by ``"don"``
-    and None (the others render nothing). ``hand_starts``: :class:`HandStarts` shares, innermost, so that a vector
-    env's automatic resets draw a start too. ``keypoint_kwargs``: more arguments of
-    :class:`~don_gym.wrappers.KeypointObservation`.
+    and None (the others render nothing), as is ``window_px`` (the env's: a window of that image around the part,
+    placed by :class:`~don_gym.wrappers.KeypointObservation`). ``hand_starts``: :class:`HandStarts` shares,
+    innermost, so that a vector env's automatic resets draw a start too. ``keypoint_kwargs``: more arguments of
+    :class:`~don_gym.wrappers.KeypointObservation`. ``memory``: add :class:`~don_gym.wrappers.KeypointMemory` (each
+    keypoint's last seen place and age) over the keypoints.
     """
     if keypoints is not None and keypoints not in KEYPOINT_SOURCES:
         raise DonGymError(f"keypoints={keypoints!r} is unknown; expected one of {list(KEYPOINT_SOURCES)}")
     images = keypoints in ("don", None)
+    if images and window_px is not None:
+        env_kwargs["window_px"] = window_px
     env = gym.make("DONPick-v0", object=object, image_size=image_size if images else None, **env_kwargs)
     if hand_starts:
         env = HandStarts(env, hand_starts)
     if keypoints is None:
+        if memory:
+            raise DonGymError("memory=True needs keypoints (keypoints=None makes an env of wrist images only)")
         return env
     if keypoints == "don":
-        return KeypointObservation(env, model=keypoint_model, keep_images=False, **(keypoint_kwargs or {}))
-    if keypoints == "true":
-        return SimulatedKeypoints(env, noise=None, field_of_view=False, keep_images=False)
-    if noise is None and str(keypoint_model) != "oracle":
-        noise = keypoint_model  # the network's default noise model
-    return SimulatedKeypoints(env, noise=noise, keep_images=False)
+        env = KeypointObservation(env, model=keypoint_model, keep_images=False, **(keypoint_kwargs or {}))
+    elif keypoints == "true":
+        env = SimulatedKeypoints(env, noise=None, field_of_view=False, keep_images=False)
+    else:
+        if noise is None and str(keypoint_model) != "oracle":
+            noise = keypoint_model  # the network's default noise model
+        env = SimulatedKeypoints(env, noise=noise, keep_images=False)
+    return KeypointMemory(env, max_age_steps=env.unwrapped.max_steps) if memory else env
 
 
 def make_goal_env(

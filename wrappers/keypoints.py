@@ -6,7 +6,7 @@ axis-end rings of :func:`don_gym.perception.descriptor_sources.axis_end_targets`
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +15,7 @@ import numpy as np
 from gymnasium import spaces
 
 from don_gym.errors import DonGymError
-from don_gym.geometry import CameraIntrinsics
+from don_gym.geometry import CameraIntrinsics, image_window, window_origin_px
 from don_gym.learning.model import DenseObjectNet
 from don_gym.perception.descriptor_sources import (
     AxisEndTargets,
@@ -42,6 +42,8 @@ DEFAULT_WINDOW_M = 0.02
 POINT_BOUND_M = 10.0
 #: Keys dropped with ``keep_images=False``.
 IMAGE_KEYS = ("rgb", "depth", "descriptors")
+#: Windowed envs (``window_px``): keypoints at least this confident place the next window (their mean world point).
+WINDOW_MIN_CONFIDENCE = 0.2
 
 
 @dataclass(frozen=True)
@@ -172,6 +174,9 @@ class KeypointObservation(DescriptorObservation):
 
         K = len(reference)
         height, width = self.observation_space["rgb"].shape[:2]
+        #: The env's wrist window (``window_px``; None: whole frames) and its whole frame's intrinsics.
+        self.window_px: int | None = getattr(env.unwrapped, "window_px", None)
+        self.frame_intrinsics = getattr(env.unwrapped, "intrinsics", None) or CameraIntrinsics.d435(width, height)
         margin = self.source.border_margin_px if border_margin_px is None else border_margin_px
         try:
             match_region(height, width, margin)  # refuses a margin that is not a count or leaves no pixels
@@ -188,9 +193,10 @@ class KeypointObservation(DescriptorObservation):
         if not self.keep_images:
             for key in IMAGE_KEYS:
                 entries.pop(key, None)
+        frame = self.frame_intrinsics
         entries["keypoint_pixels"] = spaces.Box(
             np.zeros((K, 2), np.float32),
-            np.tile(np.array([width - 1, height - 1], np.float32), (K, 1)),
+            np.tile(np.array([frame.width - 1, frame.height - 1], np.float32), (K, 1)),
             dtype=np.float32,
         )
         entries["keypoint_points"] = spaces.Box(-POINT_BOUND_M, POINT_BOUND_M, shape=(K, 3), dtype=np.float32)
@@ -210,10 +216,45 @@ class KeypointObservation(DescriptorObservation):
     def _add_descriptors(self, obs: dict[str, np.ndarray], info: dict[str, Any]) -> dict[str, np.ndarray]:
         return self.add_keypoints(super()._add_descriptors(obs, info))
 
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        if self.window_px is None:
+            return self._add_descriptors(obs, info), info
+        return self._first_window(obs, info), info
+
+    def _first_window(self, obs: dict[str, np.ndarray], info: dict[str, Any]) -> dict[str, np.ndarray]:
+        """A windowed env's first observation: nothing is known of the part yet, so the DON looks at the whole
+        frame (the observation pose sees the whole workspace), and the observation is the window around what it
+        found, as a step's would be."""
+        rgb, depth, frame = self.env.unwrapped.full_frame_images()
+        full = dict(obs, rgb=rgb, depth=depth, camera_intrinsics=frame.as_array().astype(np.float32))
+        full = DescriptorObservation._add_descriptors(self, full, info)
+        found = self.settings.locate(full, self.source, self.reference_descriptors)
+        seen = found.confidence >= WINDOW_MIN_CONFIDENCE
+        window = image_window(frame, found.pixels[seen].mean(axis=0) if seen.any() else None, self.window_px)
+        u0, v0 = window_origin_px(frame, window)
+        rows, columns = slice(v0, v0 + window.height), slice(u0, u0 + window.width)
+        obs = dict(full, camera_intrinsics=window.as_array().astype(np.float32))
+        for key in IMAGE_KEYS:
+            obs[key] = np.ascontiguousarray(full[key][rows, columns])
+        return self._with_keypoints(obs, found)
+
     def add_keypoints(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """``obs`` with ``descriptors`` (H, W, D) plus the tracked keypoints (and without the images
-        unless ``keep_images``); shared with :class:`~don_gym.wrappers.VectorKeypointObservation`."""
+        unless ``keep_images``); shared with :class:`~don_gym.wrappers.VectorKeypointObservation`. In a window
+        (``camera_intrinsics`` of a window of the env's frame) the pixels are the whole frame's."""
         found = self.settings.locate(obs, self.source, self.reference_descriptors)
+        window = CameraIntrinsics.from_array(obs["camera_intrinsics"])
+        origin = np.array(window_origin_px(self.frame_intrinsics, window), dtype=np.float64)
+        return self._with_keypoints(obs, replace(found, pixels=found.pixels + origin))
+
+    def _with_keypoints(self, obs: dict[str, np.ndarray], found: Keypoints) -> dict[str, np.ndarray]:
+        """``obs`` with the keypoints ``found`` (pixels in the whole frame); a windowed env's next window goes
+        where the confident ones are (unchanged when none is: the part's last seen place)."""
+        if self.window_px is not None:
+            seen = found.confidence >= WINDOW_MIN_CONFIDENCE
+            if seen.any():
+                self.env.unwrapped.set_window_centre(found.points_world[seen].mean(axis=0))
         if not self.keep_images:
             obs = {k: v for k, v in obs.items() if k not in IMAGE_KEYS}
         obs["keypoint_pixels"] = found.pixels.astype(np.float32)

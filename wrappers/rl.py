@@ -69,7 +69,10 @@ class KeypointFeatures(gym.ObservationWrapper):
       :data:`KEYPOINT_OFFSET_UNIT_M`) or to the TCP (``"tcp"``) (K*3,),
     - confidences (K,),
     - with ``robot_state``: TCP position relative to the workspace centre (3,), TCP quaternion
-      (4,), gripper width in units of 4 cm (1,).
+      (4,), gripper width in units of 4 cm (1,),
+    - with the keys of :class:`~don_gym.wrappers.KeypointMemory` in the observation: each keypoint's last seen
+      position relative to the TCP (``relative_to="tcp"``) or the workspace centre (K*3,), and its age as a
+      fraction of the memory's ``max_age_steps`` (K,).
 
     Keypoints not found (confidence 0 or non-finite) read as zeros with confidence 0; the
     centroid of a frame without any keypoint reads as zeros. The units make the network inputs of
@@ -94,7 +97,10 @@ class KeypointFeatures(gym.ObservationWrapper):
         self.relative_to = relative_to
         self.robot_state = robot_state
         self.num_keypoints = int(space["keypoint_points"].shape[0])
-        size = 3 + 4 * self.num_keypoints + (8 if robot_state else 0)
+        #: The observations carry :class:`~don_gym.wrappers.KeypointMemory`'s keys (and the vector them).
+        self.memory = "keypoint_memory_points" in space.spaces and "keypoint_age" in space.spaces
+        self._max_age = float(space["keypoint_age"].high.max()) if self.memory else 1.0
+        size = 3 + 4 * self.num_keypoints + (8 if robot_state else 0) + (4 * self.num_keypoints if self.memory else 0)
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(size,), dtype=np.float32)
 
     def observation(self, observation: dict[str, np.ndarray]) -> np.ndarray:
@@ -120,6 +126,12 @@ class KeypointFeatures(gym.ObservationWrapper):
                 ee_pose[3:7],
                 np.asarray(observation["gripper_width"], dtype=np.float64).reshape(1) / 0.04,
             ]
+        if self.memory:
+            memory = np.asarray(observation["keypoint_memory_points"], dtype=np.float64).reshape(-1, 3)
+            origin = np.asarray(observation["ee_pose"], dtype=np.float64)[:3] if self.relative_to == "tcp" else None
+            origin = WORKSPACE_CENTRE_M if origin is None else origin
+            age = np.asarray(observation["keypoint_age"], dtype=np.float64).reshape(-1)
+            parts += [((memory - origin) / POSITION_UNIT_M).reshape(-1), age / self._max_age]
         return np.concatenate(parts).astype(np.float32)
 
 

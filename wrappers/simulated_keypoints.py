@@ -32,6 +32,7 @@ from don_gym.perception.descriptor_sources import (
     axis_end_targets,
     env_object_model,
 )
+from don_gym.sim.sensor import SensorModel, depth_range_m
 from don_gym.wrappers.keypoints import IMAGE_KEYS, POINT_BOUND_M, KeypointObservation
 from don_gym.zoo import SHIPPED_DIR
 
@@ -301,7 +302,9 @@ class SimulatedKeypoints(gym.Wrapper, gym.utils.RecordConstructorArgs):
     and camera poses in ``info``); hidden (confidence 0, point at the reported camera centre, as
     :class:`~don_gym.wrappers.KeypointObservation` reports a keypoint without depth) when it lies
     outside the wrist camera's view (:func:`in_view`: the env's intrinsics, no occlusion test: the
-    gripper, hidden in the wrist images, and the part itself are not modelled as occluders); else
+    gripper, hidden in the wrist images, and the part itself are not modelled as occluders) or outside
+    the depth sensor's range (:func:`~don_gym.sim.sensor.depth_range_m` of the env's sensor preset: the
+    D435 returns no depth nearer than 0.24 m at 640x480, so the real path loses the part there); else
     plus an error row drawn from ``noise`` (its camera-frame error, or a miss, and its confidence),
     independently per step and keypoint. With probability ``noise.flip_rate`` an episode has its
     two keypoints swapped throughout (the DON confusing the part's ends). ``noise=None``: exact
@@ -311,7 +314,8 @@ class SimulatedKeypoints(gym.Wrapper, gym.utils.RecordConstructorArgs):
         env: a don_gym env (images not needed: make it with ``image_size=None`` for speed).
         noise: None, a :class:`KeypointNoiseModel`, a ``.npz`` path or a shipped network's name
             (its default model); checked to be of the env's part (DonGymError otherwise).
-        field_of_view: False reports every keypoint as seen, wherever the camera looks ("true state").
+        field_of_view: False reports every keypoint as seen, wherever the camera looks and however near ("true
+            state"); True hides those outside the camera's view or the sensor's depth range.
         keep_images: False drops ``rgb``/``depth`` if the env has them.
         fractions: axial fractions of the keypoints.
 
@@ -340,6 +344,14 @@ class SimulatedKeypoints(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self._rows = [self.noise.rows_of(0), self.noise.rows_of(1)]
         self.field_of_view = bool(field_of_view)
         self.keep_images = bool(keep_images)
+        sensor = getattr(env.unwrapped, "sensor", None)
+        intrinsics_now = getattr(env.unwrapped, "intrinsics", None)
+        #: (nearest, farthest) camera-frame depth (m) at which a keypoint can be seen: the sensor preset's range.
+        self.depth_range_m = (
+            depth_range_m(sensor, intrinsics_now)
+            if isinstance(sensor, SensorModel) and isinstance(intrinsics_now, CameraIntrinsics)
+            else (0.0, float("inf"))
+        )
         self._rng = np.random.default_rng()
         self._flipped = False
         space = env.observation_space
@@ -372,6 +384,8 @@ class SimulatedKeypoints(gym.Wrapper, gym.utils.RecordConstructorArgs):
         T_world_camera = np.asarray(info["T_world_camera"], dtype=np.float64)
         truth = ring_points_facing(self.object_model, self.targets, info["T_world_object"], T_world_camera[:3, 3])
         _, visible = in_view(truth, T_world_camera, intrinsics)
+        depth = transform_points(invert_transform(T_world_camera), truth)[:, 2]
+        visible &= (depth >= self.depth_range_m[0]) & (depth <= self.depth_range_m[1])
         if not self.field_of_view:
             visible[:] = True
         if self._flipped:

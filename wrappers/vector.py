@@ -90,6 +90,11 @@ class VectorKeypointObservation(VectorWrapper):
         finally:
             if temporary:
                 template_env.close()
+        if template.window_px is not None:
+            raise DonGymError(
+                f"VectorKeypointObservation: sub-envs with window_px={template.window_px} are unsupported (each "
+                "needs its own window placement); wrap each env in KeypointObservation (vectorize='dummy' or 'subproc')"
+            )
         self.template = template
         self.source = template.source
         self.keep_images = bool(keep_images)

@@ -6,6 +6,7 @@ import argparse
 from typing import TYPE_CHECKING
 
 from don_gym.cli import positive_int
+from don_gym.cli.benchmark_imitation import register_imitation
 
 if TYPE_CHECKING:
     from don_gym.objects import ObjectModel
@@ -115,6 +116,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     grasp.add_argument("--no-progress", action="store_true", help="no progress bar")
     grasp.set_defaults(run=run)
     register_bin(kinds)
+    register_imitation(kinds)
 
 
 def default_methods(part: ObjectModel) -> list[str]:

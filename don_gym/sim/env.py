@@ -16,7 +16,7 @@ import numpy as np
 from gymnasium import spaces
 
 from don_gym.errors import DonGymError
-from don_gym.geometry import CameraIntrinsics
+from don_gym.geometry import CameraIntrinsics, image_window, invert_transform, project_points, transform_points
 from don_gym.objects import ObjectModel, load_object
 from don_gym.sim.backdrop import BACKDROP_SETS, Backdrop
 from don_gym.sim.bullet import Bullet, silence_c_stdout
@@ -61,11 +61,31 @@ DEPTH_OBS_MAX_M = 10.0
 #: Overview camera for render(): behind-right of the workspace, looking at it and the cradle.
 OVERVIEW_EYE_M = np.array([1.15, -0.55, 0.75])
 OVERVIEW_TARGET_M = np.array([0.45, 0.15, 0.02])
+#: ``window_px``: where a window is centred before anything is known of the part: the workspace's centre on the table.
+WINDOW_CENTRE_WORLD_M = np.array(
+    [(WORKSPACE_M[0] + WORKSPACE_M[1]) / 2, (WORKSPACE_M[2] + WORKSPACE_M[3]) / 2, TABLE_TOP_Z_M]
+)
 
 
 def is_integer(value: Any) -> bool:
     """Whether ``value`` is a Python or NumPy integer (a bool is not)."""
     return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
+def _check_window(window_px: Any, image_size: tuple[int, int] | None) -> int | None:
+    """``window_px`` checked against the wrist frame: None, or a square window no larger than the frame."""
+    if window_px is None:
+        return None
+    if not is_integer(window_px) or window_px < 8:
+        raise DonGymError(f"window_px={window_px!r}: expected None or an integer of at least 8 pixels")
+    if image_size is None:
+        raise DonGymError(f"window_px={window_px!r} needs wrist images (image_size not None, observe_images=True)")
+    if window_px > min(image_size):
+        raise DonGymError(
+            f"window_px={window_px}: larger than the {image_size[0]}x{image_size[1]} frame; expected at most "
+            f"{min(image_size)} pixels"
+        )
+    return int(window_px)
 
 
 def _as_size(image_size: Any, what: str, allow_none: bool = True) -> tuple[int, int] | None:
@@ -206,6 +226,13 @@ class PickPlaceEnv(gym.Env):
       Pixels only: the backdrop quads have no collision shape.
     - ``render_mode``: None or "rgb_array" (a fixed overview camera); ``render_size``: its (width, height).
     - ``max_steps``: ee-mode truncation.
+    - ``window_px``: None (default), the whole wrist frame; an integer, a ``window_px`` x ``window_px`` window of
+      it rendered at the frame's own intrinsics (principal point shifted,
+      :meth:`~don_gym.geometry.CameraIntrinsics.window`), so a network trained on full frames sees the part at the
+      same scale at a fraction of the cost. The window is centred on :attr:`window_centre_world`
+      (:meth:`set_window_centre`; the workspace's centre after each reset), and ``camera_intrinsics`` are the
+      window's; :meth:`full_frame_images` renders the whole frame on demand.
+      :class:`~don_gym.wrappers.KeypointObservation` places it from the keypoints it tracks.
 
     ## Info
     ``T_world_object``, ``T_world_camera`` (true), ``T_camera_reportedcamera`` (calibration error),
@@ -217,6 +244,9 @@ class PickPlaceEnv(gym.Env):
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 25}
+    #: Side of the wrist images' window in pixels (None: the whole frame); subclasses without it see whole frames.
+    window_px: int | None = None
+    window_centre_world: np.ndarray = WINDOW_CENTRE_WORLD_M
 
     def __init__(
         self,
@@ -232,10 +262,14 @@ class PickPlaceEnv(gym.Env):
         render_size: tuple[int, int] = (320, 240),
         max_steps: int = 100,
         background: str = "plain",
+        window_px: int | None = None,
     ):
         super().__init__()
         _check_arguments(object, object_scale, control, observe_images, reward_type, render_mode, max_steps, background)
         image_size = self._set_camera_options(image_size, render_size, sensor, renderer)
+        self.window_px = _check_window(window_px, image_size if observe_images else None)
+        #: World point (m) the next wrist image's window is centred on (:meth:`set_window_centre`).
+        self.window_centre_world = WINDOW_CENTRE_WORLD_M.copy()
         self.model: ObjectModel = load_object(object, scale=object_scale)
         self.control = control
         self.reward_type = reward_type
@@ -305,11 +339,13 @@ class PickPlaceEnv(gym.Env):
     def _make_observation_space(self) -> spaces.Dict:
         entries: dict[str, spaces.Space] = {}
         if self.image_size is not None:
-            width, height = self.image_size
+            width, height = self.image_size if self.window_px is None else (self.window_px, self.window_px)
             entries["rgb"] = spaces.Box(0, 255, shape=(height, width, 3), dtype=np.uint8)
             entries["depth"] = spaces.Box(0.0, DEPTH_OBS_MAX_M, shape=(height, width), dtype=np.float32)
         big = 1e4
-        entries["camera_intrinsics"] = spaces.Box(0.0, big, shape=(6,), dtype=np.float32)
+        # A window's principal point may lie outside it (window_px), so cx and cy may be negative.
+        low = np.array([0.0, 0.0, -big, -big, 0.0, 0.0], dtype=np.float32)
+        entries["camera_intrinsics"] = spaces.Box(low, np.full(6, big, np.float32), dtype=np.float32)
         entries["camera_pose"] = spaces.Box(-10.0, 10.0, shape=(4, 4), dtype=np.float32)
         entries["joint_positions"] = spaces.Box(-4.0, 4.0, shape=(9,), dtype=np.float32)
         entries["ee_pose"] = spaces.Box(-10.0, 10.0, shape=(7,), dtype=np.float32)
@@ -321,15 +357,49 @@ class PickPlaceEnv(gym.Env):
         """The EGL plugin prints to the C stdout whenever it sets up a framebuffer; keep it quiet."""
         return silence_c_stdout() if self.renderer == "egl" else contextlib.nullcontext()
 
-    def _camera_images(self, T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _camera_images(
+        self, T_world_camera: np.ndarray, intrinsics: CameraIntrinsics | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        intrinsics = self.intrinsics if intrinsics is None else intrinsics
         with self.robot.hidden(), self._quiet_renderer():
             rgb, depth_ideal, segmentation = render_camera(
-                self.sim.client, self.intrinsics, T_world_camera, NEAR_M, FAR_M, self.renderer
+                self.sim.client, intrinsics, T_world_camera, NEAR_M, FAR_M, self.renderer
             )
         self._keep_segmentation(segmentation)
         specular = specular_map(segmentation, self._specular)
-        depth = simulate_depth(depth_ideal, specular, self.intrinsics, self.sensor, self.np_random)
+        depth = simulate_depth(depth_ideal, specular, intrinsics, self.sensor, self.np_random)
         return rgb, np.clip(depth, 0.0, DEPTH_OBS_MAX_M).astype(np.float32)
+
+    def set_window_centre(self, point_world: np.ndarray | None) -> None:
+        """Centre the next wrist images' window (``window_px``) on ``point_world`` (3,) metres, as seen from the
+        camera's reported pose at that observation (None: :data:`WINDOW_CENTRE_WORLD_M`, the workspace's
+        centre); the window stays inside the frame. Without ``window_px`` it changes nothing."""
+        if point_world is None:
+            self.window_centre_world = WINDOW_CENTRE_WORLD_M.copy()
+            return
+        point = np.asarray(point_world, dtype=np.float64).reshape(-1)
+        if point.shape != (3,) or not np.all(np.isfinite(point)):
+            raise DonGymError(f"point_world={point_world!r}: expected 3 finite world coordinates in metres")
+        self.window_centre_world = point
+
+    def image_window(self, T_world_reportedcamera: np.ndarray) -> CameraIntrinsics:
+        """The intrinsics of the next wrist images: the full frame's, or with ``window_px`` the window around
+        :attr:`window_centre_world` seen from ``T_world_reportedcamera`` (a point behind the camera: the frame's
+        centre)."""
+        if self.window_px is None:
+            return self.intrinsics
+        point_camera = transform_points(invert_transform(T_world_reportedcamera), self.window_centre_world)
+        uv, _ = project_points(self.intrinsics, point_camera)
+        return image_window(self.intrinsics, uv[0], self.window_px)
+
+    def full_frame_images(self) -> tuple[np.ndarray, np.ndarray, CameraIntrinsics]:
+        """Wrist ``rgb`` (H, W, 3) uint8 and sensor ``depth`` (H, W) metres of the whole frame now, whatever
+        ``window_px`` is, and its intrinsics: where a windowed observer first looks for the part. Draws sensor noise
+        from the env's generator like any observation; steps nothing."""
+        if self.image_size is None:
+            raise DonGymError("full_frame_images needs an env with images (image_size not None, observe_images)")
+        rgb, depth = self._camera_images(self.robot.camera_pose())
+        return rgb, depth, self.intrinsics
 
     def _keep_segmentation(self, segmentation: np.ndarray) -> None:
         """What the env keeps of the last wrist image's PyBullet segmentation: nothing here."""
@@ -343,10 +413,11 @@ class PickPlaceEnv(gym.Env):
 
     def _observation(self) -> dict[str, np.ndarray]:
         T_world_camera = self.robot.camera_pose()
+        intrinsics = self.image_window(T_world_camera @ self._T_camera_reportedcamera)
         obs: dict[str, np.ndarray] = {}
         if self.image_size is not None:
-            obs["rgb"], obs["depth"] = self._camera_images(T_world_camera)
-        obs["camera_intrinsics"] = self.intrinsics.as_array().astype(np.float32)
+            obs["rgb"], obs["depth"] = self._camera_images(T_world_camera, intrinsics)
+        obs["camera_intrinsics"] = intrinsics.as_array().astype(np.float32)
         obs["camera_pose"] = (T_world_camera @ self._T_camera_reportedcamera).astype(np.float32)
         obs["joint_positions"] = self.robot.joint_positions().astype(np.float32)
         position, quaternion = self.robot.tcp_position_quaternion()
@@ -400,6 +471,7 @@ class PickPlaceEnv(gym.Env):
         self._steps = 0
         self._lifted = False
         self._ee_yaw_rad = float(OBSERVATION_YAW_RAD)
+        self.window_centre_world = WINDOW_CENTRE_WORLD_M.copy()
         self._randomise_backdrop(seed)
         if HAND_STARTS[hand_start] is not None:
             action = self.oracle_action()

@@ -257,6 +257,20 @@ def scaled_sensor(sensor: str | SensorModel, severity: float) -> SensorModel:
     return dataclasses.replace(sensor, name=f"{sensor.name}@{severity:.2f}", **_scaled_fields(sensor, severity))
 
 
+def depth_range_m(sensor: str | SensorModel, intrinsics: CameraIntrinsics) -> tuple[float, float]:
+    """(nearest, farthest) z-depth in metres that :func:`simulate_depth` returns for ``sensor`` in a camera of
+    ``intrinsics``: ``[min_range_m, max_range_m]``, and for a stereo sensor no nearer than the depth of its largest
+    disparity, ``fx * baseline_m / max_disparity_px`` (the D435 at 640x480: 615 px x 0.05 m / 126 px = 0.244 m;
+    ``fx`` is the simulated image's, as in :func:`simulate_depth`). "ideal": (0, inf)."""
+    sensor = get_sensor(sensor)
+    if sensor.is_ideal:
+        return 0.0, float("inf")
+    nearest = float(sensor.min_range_m)
+    if sensor.baseline_m > 0 and np.isfinite(sensor.max_disparity_px):
+        nearest = max(nearest, float(intrinsics.fx) * sensor.baseline_m / float(sensor.max_disparity_px))
+    return nearest, float(sensor.max_range_m)
+
+
 def sample_calibration_error(sensor: str | SensorModel, rng: np.random.Generator) -> np.ndarray:
     """(4, 4) ``T_camera_reportedcamera``: the hand-eye calibration error of one camera.
 
