@@ -298,6 +298,7 @@ def make_batched_sac_vec_env(
 
 
 def check_n_envs(n_envs: Any) -> None:
+    """Refuse a number of envs that is not a positive integer (a bool is not), naming ``n_envs``."""
     if isinstance(n_envs, bool) or not isinstance(n_envs, (int, np.integer)) or int(n_envs) < 1:
         raise DonGymError(f"n_envs={n_envs!r}: expected a positive number of envs")
 
