@@ -88,7 +88,9 @@ def test_bench_grasp_tracking_reads_the_seeds_of_its_split(split: str, monkeypat
         raise _Asked
 
     monkeypatch.setattr(bench_grasp, "build_evaluation_datasets", stand_in)
-    args = SimpleNamespace(split=split, quick=False, objects=["toolcap"], scenes=1, frames=2, workers=1, points=2)
+    args = SimpleNamespace(
+        split=split, quick=False, objects=["toolcap"], scenes=1, frames=2, workers=1, points=2, renderer="tiny"
+    )
     with pytest.raises(_Asked):
         bench_grasp.tracking(args, tmp_path)
     assert asked == {"object": "toolcap", "seeds": SPLIT_SEEDS[split], "split": split}
@@ -126,7 +128,16 @@ def test_bench_bin_reads_the_piles_and_seeds_of_its_split(split: str, monkeypatc
     monkeypatch.setattr(bench_bin, "run_bin_benchmark", clearing_stand_in)
     monkeypatch.setattr(bench_bin, "build_evaluation_datasets", tracking_stand_in)
     args = SimpleNamespace(
-        quick=True, piles=2, multi_part=[], workers=1, device="cpu", work=str(tmp_path), scenes=1, frames=2, points=2
+        quick=True,
+        piles=2,
+        multi_part=[],
+        methods=None,
+        workers=1,
+        device="cpu",
+        work=str(tmp_path),
+        scenes=1,
+        frames=2,
+        points=2,
     )
     with pytest.raises(_Asked):
         bench_bin.clearing(args, split)
