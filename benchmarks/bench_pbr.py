@@ -149,7 +149,7 @@ def build(work: Path, objects: list[str], scenes: int, frames: int, size: tuple[
         built = (_scenes_on_disk(datasets) - before) * frames
         others = f"{load.cores:.1f}" if load.cores is not None else "nan"
         if built == 0:
-            rows.append(f"| {object_name} | 0 of {total} (complete before this run) | | | | {others} |")
+            rows.append(f"| {object_name} | 0 of {total} (complete before this run) | | | | | {others} |")
             continue
         projected_s = total * seconds / built
         verdict = ("met" if projected_s <= BUILD_TARGET_S else "MISSED") + ("" if built == total else " (projected)")
