@@ -129,7 +129,7 @@ class VisualShape:
     """One visual of the scene: a triangle mesh in its own frame, where it is, and how it looks.
 
     Attributes:
-        key: identifies the mesh (file and scale, primitive and size, or array id) for caching.
+        key: identifies the mesh (file and scale, or primitive and size), as the mesh cache does.
         vertices_m: (N, 3) float64 vertices in the shape's frame, metres.
         faces: (M, 3) int64 vertex indices.
         uvs: (N, 2) texture coordinates (OpenGL: v up), or None.
@@ -428,7 +428,6 @@ class PbrRenderer:
         self.assets = assets
         self.settings = settings or PbrSettings()
         self._meshes = _MeshCache()
-        self._mitsuba_meshes: dict[tuple, Any] = {}
         self._bitmaps: dict[str, Any] = {}
         self._environments: dict[int, Any] = {}
 
@@ -493,7 +492,7 @@ class PbrRenderer:
         return {
             "environment": {
                 "type": "envmap",
-                "bitmap": self._environment(_lighting_seed(lighting) % 100000 if lighting is not None else 0),
+                "bitmap": self._environment(_lighting_seed(lighting) % 100000),
                 "scale": float(light.ambient / 0.6),
                 # Mitsuba's environment's "up" is +y; the world's is +z.
                 "to_world": self.mi.ScalarTransform4f().rotate([1.0, 0.0, 0.0], 90.0),
