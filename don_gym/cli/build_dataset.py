@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from don_gym.sim.camera import RENDERERS
+from don_gym.data.build import DATASET_RENDERERS
 
 #: The pile of a bin build without --parts.
 DEFAULT_PARTS = "toolcap:3,shaft:2"
@@ -60,8 +60,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--renderer",
         default="tiny",
-        choices=list(RENDERERS),
-        help="renderer of the RGB images: tiny (TinyRenderer, default), egl (OpenGL), pbr (path-traced, the pbr extra)",
+        choices=list(DATASET_RENDERERS),
+        help="renderer of the RGB images: tiny (TinyRenderer, default), egl (OpenGL), pbr (path-traced, the pbr "
+        "extra), mixed (odd-numbered scenes pbr, the others tiny: training data for networks that must hold on both)",
     )
     parser.add_argument("--dim", type=int, default=3, help="descriptor dimension D")
     parser.add_argument("--no-symmetry", action="store_true", help="plain Laplacian Eigenmaps (no GISIF merging)")

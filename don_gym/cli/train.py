@@ -51,6 +51,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints")
     parser.add_argument("--pretrained", default=None, help="local ImageNet weights (torchvision ResNet layout)")
     parser.add_argument(
+        "--init",
+        default=None,
+        metavar="CHECKPOINT",
+        help="fine-tune: start from this don_gym checkpoint (same method, arch, part and descriptor space; a shipped "
+        "network's path, e.g. from 'don-gym zoo') instead of random weights",
+    )
+    parser.add_argument(
         "--depth-source",
         default="fused",
         choices=["fused", "sensor", "ideal"],
@@ -140,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         checkpoint_every=args.checkpoint_every,
         pretrained_path=args.pretrained,
+        init_path=args.init,
         depth_source=args.depth_source,
         device=args.device,
         crop_size=_crop(args.crop),

@@ -58,7 +58,9 @@ __all__ = [
     "FUSION_MARGIN_M",
     "BaseSceneWriter",
     "BuildReport",
+    "DATASET_RENDERERS",
     "DatasetConfig",
+    "MIXED_RENDERER",
     "SceneWriter",
     "build_dataset",
     "check_not_foreign",
@@ -69,6 +71,8 @@ __all__ = [
     "parse_shard",
     "part_info",
     "prepare_dataset_dir",
+    "recorder_renderer",
+    "scene_renderer",
     "scene_seed",
     "single_threaded_children",
     "write_scenes",
@@ -76,6 +80,26 @@ __all__ = [
 
 #: Margin (m) of the TSDF volume around the object's bounding sphere.
 FUSION_MARGIN_M = 0.02
+#: A dataset of both looks: its odd-numbered scenes path-traced (``"pbr"``), the others TinyRenderer's, so that a
+#: network trained on it meets the flat appearance and the physical one in equal shares (docs/background.md,
+#: "Training data").
+MIXED_RENDERER = "mixed"
+#: What ``DatasetConfig.renderer`` accepts: a camera renderer (:data:`~don_gym.sim.camera.RENDERERS`) or
+#: :data:`MIXED_RENDERER`.
+DATASET_RENDERERS = ("tiny", "egl", "pbr", MIXED_RENDERER)
+
+
+def scene_renderer(renderer: str, scene_index: int) -> str:
+    """The renderer of scene ``scene_index``'s RGB in a dataset built with ``renderer`` (a camera renderer itself,
+    or for :data:`MIXED_RENDERER` ``"pbr"`` on odd indices and ``"tiny"`` on even ones)."""
+    if renderer != MIXED_RENDERER:
+        return renderer
+    return "pbr" if scene_index % 2 else "tiny"
+
+
+def recorder_renderer(renderer: str) -> str:
+    """The renderer a dataset built with ``renderer`` opens its simulator with (a ``"pbr"`` one draws both looks)."""
+    return "pbr" if renderer == MIXED_RENDERER else renderer
 
 
 @dataclass(frozen=True)
@@ -136,6 +160,8 @@ class DatasetConfig:
         _check_int("distractors", self.distractors, "--distractors", minimum=0)
         if self.lighting not in LIGHTING_MODES:
             raise DatasetError(f"lighting={self.lighting!r} (--lighting): expected one of {list(LIGHTING_MODES)}")
+        if self.renderer not in DATASET_RENDERERS:
+            raise DatasetError(f"renderer={self.renderer!r} (--renderer): expected one of {list(DATASET_RENDERERS)}")
         scale = self.object_scale
         if scale is not None and not (_is_number(scale) and scale > 0):
             raise DatasetError(f"object_scale={scale!r} (--object-scale): expected a positive, finite factor")
@@ -396,6 +422,7 @@ def _check_renderer_available(renderer: str) -> None:
     from don_gym.sim.bullet import Bullet
     from don_gym.sim.camera import check_renderer
 
+    renderer = recorder_renderer(renderer)
     if check_renderer(renderer) == "tiny":
         return
     with warnings.catch_warnings():
@@ -529,7 +556,7 @@ class BaseSceneWriter:
         return {
             "image_size": config.image_size,
             "sensor": config.sensor,
-            "renderer": config.renderer,
+            "renderer": recorder_renderer(config.renderer),
             "backgrounds": config.backgrounds,
             "lighting": config.lighting,
         }
@@ -539,7 +566,7 @@ class BaseSceneWriter:
             warnings.simplefilter("ignore")  # an EGL fallback is refused just below
             self.recorder = make_recorder()
         try:
-            _check_renderer_in_use(self.recorder.renderer, self.config.renderer)
+            _check_renderer_in_use(self.recorder.renderer, recorder_renderer(self.config.renderer))
         except DatasetError:
             self.recorder.close()
             raise
@@ -576,7 +603,8 @@ class BaseSceneWriter:
     def _record(self, path: Path, scene_index: int) -> int:
         config = self.config
         seed = scene_seed(config.seed, scene_index)
-        scene = self.recorder.record(seed=seed, num_frames=config.frames_per_scene)
+        renderer = scene_renderer(config.renderer, scene_index)
+        scene = self.recorder.record(seed=seed, num_frames=config.frames_per_scene, renderer=renderer)
         instances = self._instances(scene)
         for f, frame in enumerate(scene.frames):
             write_frame(
@@ -599,6 +627,7 @@ class BaseSceneWriter:
             {
                 "scene_index": scene_index,
                 "seed": seed,
+                "renderer": renderer,
                 "object": primary,
                 "intrinsics": scene.intrinsics.as_array(),
                 # For readers of one object: the first instance of the primary part.

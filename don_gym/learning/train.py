@@ -42,7 +42,7 @@ from don_gym.descriptors.multi_part import IDENTITY_LAYOUT, LAYOUT_CHOICES
 from don_gym.errors import DonGymError
 from don_gym.io import DirectoryLock, atomic_path, check_output_dir, write_text_atomic
 from don_gym.learning.augment import AugmentConfig
-from don_gym.learning.checkpoints import CheckpointMetadata, PartIdentity, save_checkpoint
+from don_gym.learning.checkpoints import CheckpointMetadata, PartIdentity, load_checkpoint, save_checkpoint
 from don_gym.learning.distributed import (
     BACKENDS,
     SINGLE_PROCESS,
@@ -101,7 +101,7 @@ RESUMABLE_CHANGES = ("steps", "checkpoint_every", "device", "threads", "workers"
 #: Paths are compared by what they point at, never by spelling: the run directory is the run
 #: being resumed wherever it lies, the dataset is compared by content (:func:`dataset_identity`)
 #: and pretrained weights matter only before the first step.
-PATH_SETTINGS = ("out", "data", "pretrained_path")
+PATH_SETTINGS = ("out", "data", "pretrained_path", "init_path")
 #: Values of ``TrainConfig.precision``.
 PRECISIONS = ("auto", "fp32", "bf16", "fp16")
 #: Key of config.json that records :func:`dataset_identity`.
@@ -127,7 +127,9 @@ class TrainConfig:
     CPUs) is the torch.distributed backend under torchrun. ``part_layout`` (supervised methods on bin datasets of
     several parts only) is the descriptor space's layout the network learns: ``"auto"`` the dataset's own,
     ``"identity"`` every part's whole field plus one output channel for part identity
-    (:func:`~don_gym.descriptors.multi_part.build_part_space`; not with ``supervised-mask``)."""
+    (:func:`~don_gym.descriptors.multi_part.build_part_space`; not with ``supervised-mask``).
+    ``init_path`` fine-tunes: the run starts from the weights of a don_gym checkpoint of the same method, arch,
+    part and descriptor space (e.g. a shipped network, to adapt it to new data) instead of random ones."""
 
     method: str
     data: str
@@ -154,6 +156,7 @@ class TrainConfig:
     precision: str = "auto"
     backend: str = "auto"
     part_layout: str = "auto"
+    init_path: str | None = None
 
     def learning_rate(self) -> float:
         if self.lr is not None:
@@ -235,6 +238,13 @@ def validate_config(config: TrainConfig) -> None:
         raise DonGymError(
             "part_layout 'identity' does not support supervised-mask, whose mask channel would replace a "
             "descriptor dimension; use supervised or supervised-edge, or part_layout 'auto'"
+        )
+    if config.init_path is not None and (not isinstance(config.init_path, str) or not config.init_path):
+        raise DonGymError(f"init_path must be a checkpoint path or None, got {config.init_path!r}")
+    if config.init_path is not None and config.pretrained_path is not None:
+        raise DonGymError(
+            f"init_path {config.init_path} and pretrained_path {config.pretrained_path}: a run starts from one of "
+            "them (a checkpoint to fine-tune, or ImageNet weights for the encoder), not both"
         )
     if config.pretrained_path is not None and not ARCHS[config.arch].torchvision_layout:
         raise DonGymError(
@@ -407,6 +417,7 @@ def checkpoint_metadata(
             "dataset_frames_per_scene": int(dataset_info["frames_per_scene"]),
             "dataset_seed": int(dataset_info["seed"]),
             "depth_source": "" if supervised else config.depth_source,
+            "init": Path(config.init_path).name if config.init_path else None,
         },
     )
 
@@ -608,6 +619,8 @@ class _TrainingRun:
             if run.state is None and config.pretrained_path is not None:
                 # Other processes receive these weights with DistributedDataParallel's first broadcast.
                 self.model.load_pretrained_encoder(config.pretrained_path)
+            if run.state is None and config.init_path is not None:
+                self.load_init_weights(Path(config.init_path))
             with _writing(out / RUN_CONFIG):
                 saved = {**asdict(config), DATASET_IDENTITY_KEY: self.identity}
                 write_text_atomic(out / RUN_CONFIG, json.dumps(saved, indent=1) + "\n")
@@ -619,6 +632,28 @@ class _TrainingRun:
             return _RunStart(error=str(exc))
         held.append(lock)
         return run
+
+    def load_init_weights(self, path: Path) -> None:
+        """The weights of checkpoint ``path`` into the network, once it is shown to be a network of this run's
+        method, arch, part and descriptor space; :class:`DonGymError` naming what differs otherwise."""
+        config, info = self.config, self.info
+        network, metadata = load_checkpoint(
+            path, expect_method=config.method, expect_descriptor_dim=self.model.descriptor_dim
+        )
+        problems = []
+        if metadata.arch != config.arch:
+            problems.append(f"arch is {metadata.arch!r}, this run's {config.arch!r}")
+        if metadata.object_mesh_hash != info["mesh_hash"]:
+            problems.append(f"it describes {metadata.object_name!r}, the dataset {info.get('object_name')!r}")
+        if dict(metadata.part_space) != dict(self.part_space_record or {}):
+            problems.append("its parts' descriptor space is not the dataset's")
+        if self.target_background is not None and not np.allclose(
+            metadata.background_descriptor, self.target_background, atol=1e-4
+        ):
+            problems.append("its background descriptor is not the dataset's (another descriptor field)")
+        if problems:
+            raise DonGymError(f"init checkpoint {path}: cannot be fine-tuned here: " + "; ".join(problems))
+        self.model.load_state_dict(network.state_dict())
 
     def restore(self, run: _RunStart) -> None:
         """The resumed state of ``run`` (if any) into the network and optimiser, and its losses so far."""

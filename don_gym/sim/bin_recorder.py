@@ -111,10 +111,11 @@ class BinSceneRecorder(SceneRecorder):
         )
 
     def record(  # type: ignore[override]
-        self, seed: int, num_frames: int, max_tries_per_frame: int = 20
+        self, seed: int, num_frames: int, max_tries_per_frame: int = 20, renderer: str | None = None
     ) -> BinScene:
-        """Record one pile; the same seed gives the same scene, pixel for pixel."""
-        rng, background = self._start_scene(seed, num_frames)
+        """Record one pile; the same seed gives the same scene, pixel for pixel; ``renderer`` as for
+        :meth:`SceneRecorder.record`."""
+        rng, background = self._start_scene(seed, num_frames, renderer)
         self.task.drop_pile(rng)
         _, lighting = self._vary_scene(seed, background)
         instances = [

@@ -112,6 +112,7 @@ class SceneRecorder:
         self._set_camera_options(image_size, sensor, backgrounds, lighting)
         distractor_count = check_distractor_count(distractors)
         self.sim = Bullet(renderer=renderer)
+        self._scene_renderer = self.sim.renderer
         self.robot = Panda(self.sim)
         self.task = PickPlaceTask(self.sim, model)
         self.backdrop = Backdrop(self.sim, cradle_id=self.task.cradle_id)
@@ -179,14 +180,20 @@ class SceneRecorder:
         return T_world_camera
 
     def record(
-        self, seed: int, num_frames: int, T_world_object: np.ndarray | None = None, max_tries_per_frame: int = 20
+        self,
+        seed: int,
+        num_frames: int,
+        T_world_object: np.ndarray | None = None,
+        max_tries_per_frame: int = 20,
+        renderer: str | None = None,
     ) -> RecordedScene:
         """Record one scene; the same seed gives the same scene, pixel for pixel.
 
         ``T_world_object`` places the object exactly (no settling); otherwise a random
-        lying pose is drawn from the seed and the object settles under gravity.
+        lying pose is drawn from the seed and the object settles under gravity. ``renderer`` draws this
+        scene's RGB (:meth:`frame_renderer`); depth, masks and poses do not depend on it.
         """
-        rng, background = self._start_scene(seed, num_frames)
+        rng, background = self._start_scene(seed, num_frames, renderer)
         if T_world_object is None:
             self.task.place_part(*self.task.sample_pose(rng))
             self.task.settle()
@@ -212,11 +219,28 @@ class SceneRecorder:
         self.robot.reset(ARM_HOME_RAD)
         return scene
 
-    def _start_scene(self, seed: int, num_frames: int) -> tuple[np.random.Generator, dict[str, Any]]:
+    def frame_renderer(self, renderer: str | None) -> str:
+        """The renderer a scene's RGB is drawn with: ``renderer``, or the recorder's own for None. TinyRenderer
+        draws with any client, so a ``"pbr"`` recorder can record a dataset of both (a ``"mixed"`` dataset);
+        another renderer than those two needs a recorder made with it."""
+        if renderer is None or renderer == self.sim.renderer:
+            return self.sim.renderer
+        if renderer != "tiny":
+            raise DonGymError(
+                f"renderer={renderer!r}: this recorder was made with renderer={self.sim.renderer!r}; it draws a scene "
+                "with that one or 'tiny'"
+            )
+        return renderer
+
+    def _start_scene(
+        self, seed: int, num_frames: int, renderer: str | None = None
+    ) -> tuple[np.random.Generator, dict[str, Any]]:
         """The scene's main random stream and, drawn from it, the classic backdrop, once the simulation is back to
-        its state after construction (bit-identical physics for the same seed, whatever was recorded before)."""
+        its state after construction (bit-identical physics for the same seed, whatever was recorded before); sets
+        the renderer of the scene's frames (:meth:`frame_renderer`)."""
         if num_frames < 1:
             raise DonGymError(f"num_frames must be >= 1, got {num_frames}")
+        self._scene_renderer = self.frame_renderer(renderer)
         rng = np.random.default_rng(seed)
         self.robot.reset(ARM_HOME_RAD)
         self.task.forget_contacts()
@@ -276,7 +300,7 @@ class SceneRecorder:
             if T_world_camera is None:
                 continue
             rgb, depth_ideal, segmentation = render_camera(
-                self.sim.client, self.intrinsics, T_world_camera, renderer=self.sim.renderer, lighting=lighting
+                self.sim.client, self.intrinsics, T_world_camera, renderer=self._scene_renderer, lighting=lighting
             )
             specular = specular_map(segmentation, specular_by_body)
             depth = simulate_depth(depth_ideal, specular, self.intrinsics, self.sensor, rng)
