@@ -14,6 +14,15 @@ trained on the same scenes.
     python benchmarks/train_shipped.py            # the shipped recipe
     python benchmarks/train_shipped.py --quick    # a smoke run into a temp dir (no copy)
     python benchmarks/train_shipped.py --restamp --work runs/shipped   # no training: add the part identity
+    python benchmarks/train_shipped.py --renderer mixed --base runs/base --no-ship   # fine-tune candidates
+
+``--renderer mixed`` (or ``pbr``) adds a second stage (issue 56): each method's network from the recipe above (stage 1,
+TinyRenderer data; ``--base DIR`` takes them from ``DIR/<object>/<method>.safetensors`` instead of training them)
+is fine-tuned for ``--fine-tune-steps`` on a dataset of that renderer (``FINE_TUNE_SCENES``, the same variety and
+seed; for ``mixed`` half its scenes path-traced), with its own run directory ``run_<object>_<method>_<renderer>``;
+the stage-2 network is the one shipped. ``--no-ship`` trains and reports without copying or recording anything, so
+candidates can be judged on development seeds first; the same command without it then ships the finished runs
+without training them again.
 
 Every copied network carries the identity of its part and its descriptor field (docs/reliability.md, "Part
 identity"). ``--restamp`` adds them in place to shipped networks saved without them (weights untouched),
@@ -35,13 +44,13 @@ from _results import RESULTS_PATH, commit_description, read_section, record_sect
 from check_shipped import record_regenerated  # noqa: E402
 
 from don_gym.cli import parse_size, positive_int  # noqa: E402
-from don_gym.data.build import DatasetConfig, build_dataset  # noqa: E402
+from don_gym.data.build import DATASET_RENDERERS, DatasetConfig, build_dataset  # noqa: E402
 from don_gym.data.dataset import FIELD_FILE  # noqa: E402
 from don_gym.descriptors import DescriptorField  # noqa: E402
 from don_gym.errors import DonGymError  # noqa: E402
 from don_gym.learning.checkpoints import read_checkpoint_metadata, restamp_checkpoint  # noqa: E402
 from don_gym.learning.model import ARCHS, DEFAULT_ARCH  # noqa: E402
-from don_gym.learning.train import TrainConfig, train  # noqa: E402
+from don_gym.learning.train import TrainConfig, TrainResult, train  # noqa: E402
 from don_gym.objects import load_object  # noqa: E402
 from don_gym.sim.backdrop import BACKDROP_SETS  # noqa: E402
 from don_gym.zoo import SHIPPED_DIR  # noqa: E402
@@ -75,6 +84,15 @@ BACKGROUND_CROPS = 0.5
 # inside the silhouette into matches off the part (p99 of the shaft's 3D error 246 mm with resnet-lite); the
 # decoder of resnet-lite-fine resolves the silhouette at stride 2.
 ARCH = {"supervised-edge": "resnet-lite", "supervised-mask": "resnet-lite-fine", "self-supervised": "resnet-lite"}
+# Stage 2 (issue 56): 128 scenes for both parts (with "mixed", 64 path-traced and 64 TinyRenderer): the toolcap's
+# stage 1 saw 64 scenes; the shaft's saw 256, but a network that already tells its ends apart only has to adapt to
+# the new look, and path-traced frames cost ~2.6 s each on 2 cores.
+FINE_TUNE_SCENES = {"toolcap": 128, "shaft": 128}
+# A sixth of stage 1's steps, at a third of its initial learning rate, decayed x0.9 every 300 steps: the network
+# adapts to the new look without starting over (docs/background.md, "Training data").
+FINE_TUNE_STEPS = 3000
+FINE_TUNE_LR = 3e-4
+FINE_TUNE_DECAY_EVERY = 300
 TABLE_COLUMNS = (
     "object", "method", "arch", "scenes", "data", "bg crops", "steps", "lr decay every", "minutes", "images/s",
     "final loss", "MB", "commit",
@@ -159,6 +177,23 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2, help="processes that build the batches (0: in the loop)")
     parser.add_argument("--objects", nargs="+", choices=OBJECTS, default=list(OBJECTS))
     parser.add_argument("--methods", nargs="+", default=list(METHODS))
+    parser.add_argument(
+        "--renderer",
+        choices=DATASET_RENDERERS,
+        default="tiny",
+        help="tiny: the networks of stage 1 are shipped; mixed or pbr: they are fine-tuned on data of that renderer "
+        "(stage 2) and the result shipped",
+    )
+    parser.add_argument(
+        "--base",
+        default=None,
+        help="stage 2 starts from DIR/<object>/<method>.safetensors instead of training stage 1 here",
+    )
+    parser.add_argument("--fine-tune-steps", type=positive_int, default=FINE_TUNE_STEPS)
+    parser.add_argument(
+        "--fine-tune-scenes", type=positive_int, default=None, help="stage 2's scenes (default: FINE_TUNE_SCENES)"
+    )
+    parser.add_argument("--no-ship", action="store_true", help="train and report; copy and record nothing")
     parser.add_argument("--quick", action="store_true", help="tiny smoke run in a temp dir; copies nothing")
     parser.add_argument(
         "--restamp", action="store_true", help="no training: add the part identity to the shipped networks in place"
@@ -172,13 +207,13 @@ def main() -> None:
         return
     work = Path(tempfile.mkdtemp(prefix="don_gym_shipped_")) if args.quick else Path(args.work)
     if args.quick:
-        args.scenes, args.frames, args.steps = 2, 6, 20
+        args.scenes, args.frames, args.steps, args.fine_tune_steps, args.fine_tune_scenes = 2, 6, 20, 10, 2
+    ship = not (args.quick or args.no_ship)
     archs = {method: args.arch or ARCH.get(method, DEFAULT_ARCH) for method in args.methods}
     rows: dict[str, dict[str, str]] = {name: {} for name in args.objects}
     shipped = []
     crops = {name: args.crop or CROPS[name] for name in args.objects}
     scenes = {name: SCENES[name] if args.scenes is None else args.scenes for name in args.objects}
-    checkpoint_every = max(1, args.steps // 4) if args.checkpoint_every is None else args.checkpoint_every
     commit = commit_description()
     for object_name in args.objects:
         data = work / f"data_{object_name}"
@@ -193,50 +228,22 @@ def main() -> None:
             lighting=args.lighting,
         )
         check_runs_match(work, object_name, args.methods, scenes[object_name])
-        start = time.perf_counter()
-        report = build_dataset(config, data)
-        print(f"{object_name}: dataset {report.frames_written} new frames in {time.perf_counter() - start:.0f} s")
+        if args.base is None or args.renderer == "tiny":
+            start = time.perf_counter()
+            report = build_dataset(config, data)
+            print(f"{object_name}: dataset {report.frames_written} new frames in {time.perf_counter() - start:.0f} s")
         for method in args.methods:
-            run = work / f"run_{object_name}_{method}"
-            result = train(
-                TrainConfig(
-                    method=method,
-                    data=str(data),
-                    out=str(run),
-                    steps=args.steps,
-                    lr_decay_every=args.lr_decay_every,
-                    arch=archs[method],
-                    batch_size=args.batch_size,
-                    seed=0,
-                    crop_size=crops[object_name],
-                    background_crop_probability=args.background_crops,
-                    threads=args.threads,
-                    workers=args.workers,
-                    checkpoint_every=checkpoint_every,
-                ),
-                resume=True,
-            )
-            rows[object_name][method] = {
-                "object": object_name,
-                "method": method,
-                "arch": archs[method],
-                "scenes": str(scenes[object_name]),
-                "data": data_description(args.frames, args.backgrounds, args.distractors, args.lighting),
-                "bg crops": f"{args.background_crops:g}",
-                "steps": str(args.steps),
-                "lr decay every": str(args.lr_decay_every),
-                "minutes": "n/a" if result.seconds is None else f"{result.seconds / 60:.1f}",
-                "images/s": "n/a" if result.images_per_second is None else f"{result.images_per_second:.1f}",
-                "final loss": f"{result.final_loss:.4g}",
-                "MB": f"{result.model_path.stat().st_size / 1e6:.1f}",
-                "commit": commit,
-            }
-            if not args.quick:
+            if args.renderer == "tiny":
+                row, result, trained_on = train_stage_one(args, work, object_name, method, archs[method], crops, scenes)
+            else:
+                row, result, trained_on = fine_tune(args, work, object_name, method, archs[method], crops, scenes)
+            rows[object_name][method] = {**row, "commit": commit}
+            if ship:
                 target = SHIPPED_DIR / object_name / f"{method}.safetensors"
                 target.parent.mkdir(parents=True, exist_ok=True)
                 shutil.copyfile(result.model_path, target)
                 print(f"shipped {target}")
-                restamp_shipped(object_name, method, data)
+                restamp_shipped(object_name, method, trained_on)
                 shipped.append(f"{object_name}/{method}")
     width, height = args.size
     for object_name in args.objects:
@@ -249,7 +256,8 @@ def main() -> None:
             key=lambda row: METHODS.index(row["method"]) if row["method"] in METHODS else len(METHODS),
         )
         body = f"""Datasets: the row's scenes, each of the frames and variety its data column names (backdrop families,
-distractors, light: docs/background.md, "Training data"), {width}x{height}, sensor `d435`, TinyRenderer, seed 0.
+distractors, light: docs/background.md, "Training data"), {width}x{height}, sensor `d435`, TinyRenderer, seed 0; a row
+with two figures in a column (stage 1 + stage 2) was then fine-tuned on the data its column names after the ";".
 Training: the row's network arch, batch {args.batch_size} (images, or image pairs for self-supervised),
 {crop_width}x{crop_height} crops (the row's bg crops share anywhere in the frame, the rest object-centred), Adam lr
 1e-3 x0.9 every "lr decay every" steps, seed 0, {args.threads} torch thread(s), {args.workers} loader worker(s).
@@ -262,11 +270,148 @@ earlier run of this script is kept while its network is still the shipped one.
 |{"---|" * len(TABLE_COLUMNS)}
 """ + "\n".join("| " + " | ".join(row.get(c, "n/a") for c in TABLE_COLUMNS) + " |" for row in table)
         print(body)
-        if not args.quick:
+        if ship:
             record_section(section, f"Shipped networks: {object_name} (train_shipped.py)", body)
     if shipped:
         # The manifest of tests/test_shipped_fresh.py: these networks are made with the current sources.
         record_regenerated(shipped)
+
+
+def _minutes(result: TrainResult) -> str:
+    return "n/a" if result.seconds is None else f"{result.seconds / 60:.1f}"
+
+
+def _images_per_second(result: TrainResult) -> str:
+    return "n/a" if result.images_per_second is None else f"{result.images_per_second:.1f}"
+
+
+def train_stage_one(
+    args: argparse.Namespace,
+    work: Path,
+    object_name: str,
+    method: str,
+    arch: str,
+    crops: dict[str, tuple[int, int]],
+    scenes: dict[str, int],
+) -> tuple[dict[str, str], TrainResult, Path]:
+    """Stage 1 (the TinyRenderer recipe) of one network in ``work/run_<object>_<method>``, resumed if there: its
+    table row, result and dataset directory."""
+    data = work / f"data_{object_name}"
+    result = train(
+        TrainConfig(
+            method=method,
+            data=str(data),
+            out=str(work / f"run_{object_name}_{method}"),
+            steps=args.steps,
+            lr_decay_every=args.lr_decay_every,
+            arch=arch,
+            batch_size=args.batch_size,
+            seed=0,
+            crop_size=crops[object_name],
+            background_crop_probability=args.background_crops,
+            threads=args.threads,
+            workers=args.workers,
+            checkpoint_every=max(1, args.steps // 4) if args.checkpoint_every is None else args.checkpoint_every,
+        ),
+        resume=True,
+    )
+    row = {
+        "object": object_name,
+        "method": method,
+        "arch": arch,
+        "scenes": str(scenes[object_name]),
+        "data": data_description(args.frames, args.backgrounds, args.distractors, args.lighting),
+        "bg crops": f"{args.background_crops:g}",
+        "steps": str(args.steps),
+        "lr decay every": str(args.lr_decay_every),
+        "minutes": _minutes(result),
+        "images/s": _images_per_second(result),
+        "final loss": f"{result.final_loss:.4g}",
+        "MB": f"{result.model_path.stat().st_size / 1e6:.1f}",
+    }
+    return row, result, data
+
+
+def fine_tune(
+    args: argparse.Namespace,
+    work: Path,
+    object_name: str,
+    method: str,
+    arch: str,
+    crops: dict[str, tuple[int, int]],
+    scenes: dict[str, int],
+) -> tuple[dict[str, str], TrainResult, Path]:
+    """Stage 2 of one network: stage 1's (``--base``'s, or trained here) fine-tuned on a dataset of ``--renderer``
+    in ``work/run_<object>_<method>_<renderer>``, resumed if there: its table row, result and dataset directory."""
+    if args.base is not None:
+        base = Path(args.base) / object_name / f"{method}.safetensors"
+        if not base.is_file():
+            raise DonGymError(f"--base {args.base}: no {object_name}/{method}.safetensors there to fine-tune")
+        base_row = {"minutes": "n/a", "images/s": "n/a"}
+    else:
+        base_row, base_result, _ = train_stage_one(args, work, object_name, method, arch, crops, scenes)
+        base = base_result.model_path
+    fine_scenes = args.fine_tune_scenes or FINE_TUNE_SCENES[object_name]
+    data = work / f"data_{object_name}_{args.renderer}"
+    config = DatasetConfig(
+        object=object_name,
+        scenes=fine_scenes,
+        frames_per_scene=args.frames,
+        image_size=args.size,
+        sensor="d435",
+        renderer=args.renderer,
+        backgrounds=args.backgrounds,
+        distractors=args.distractors,
+        lighting=args.lighting,
+    )
+    start = time.perf_counter()
+    report = build_dataset(config, data)
+    print(f"{object_name} ({args.renderer}): {report.frames_written} new frames in {time.perf_counter() - start:.0f} s")
+    steps = args.fine_tune_steps
+    result = train(
+        TrainConfig(
+            method=method,
+            data=str(data),
+            out=str(work / f"run_{object_name}_{method}_{args.renderer}"),
+            steps=steps,
+            lr=FINE_TUNE_LR,
+            lr_decay_every=FINE_TUNE_DECAY_EVERY,
+            arch=arch,
+            batch_size=args.batch_size,
+            seed=0,
+            crop_size=crops[object_name],
+            background_crop_probability=args.background_crops,
+            threads=args.threads,
+            workers=args.workers,
+            checkpoint_every=max(1, steps // 4) if args.checkpoint_every is None else args.checkpoint_every,
+            init_path=str(base),
+        ),
+        resume=True,
+    )
+    description = data_description(args.frames, args.backgrounds, args.distractors, args.lighting)
+    row = {
+        "object": object_name,
+        "method": method,
+        "arch": arch,
+        "scenes": f"{scenes[object_name]} + {fine_scenes}",
+        "data": f"{description}; then {fine_scenes} scenes {args.renderer} ({RENDERER_WORDS[args.renderer]})",
+        "bg crops": f"{args.background_crops:g}",
+        "steps": f"{args.steps} + {steps}",
+        "lr decay every": f"{args.lr_decay_every} + {FINE_TUNE_DECAY_EVERY} (lr {FINE_TUNE_LR:g})",
+        "minutes": f"{base_row['minutes']} + {_minutes(result)}",
+        "images/s": f"{base_row['images/s']} + {_images_per_second(result)}",
+        "final loss": f"{result.final_loss:.4g}",
+        "MB": f"{result.model_path.stat().st_size / 1e6:.1f}",
+    }
+    return row, result, data
+
+
+RENDERER_WORDS = {
+    "pbr": "path-traced",
+    "mixed": "half path-traced, half TinyRenderer",
+    "egl": "OpenGL",
+    "tiny": "TinyRenderer",
+}
 
 
 def data_description(frames: int, backgrounds: str, distractors: int, lighting: str) -> str:
