@@ -8,7 +8,7 @@ predicted points from D435 depth (bench_grasp.py's), the oracle, the shipped net
 gives per network and split the median 3D error modulo symmetry, the p99 of the 3D error and the share of matches
 more than 100 mm off, each with its 95% interval over scenes, with the issue's targets for the supervised networks
 (:data:`TRACKING_TARGETS_MM`, :data:`TARGET_FAR_PCT`: the same on both splits). Records RESULTS.md section
-``fine-tune-dev``; the test split is not touched (the choices are made here).
+``fine-tune-dev`` (``--section``); the test split is not touched (the choices are made here).
 
     python benchmarks/bench_fine_tune.py --candidates runs/shipped_pbr --renderer mixed
     python benchmarks/bench_fine_tune.py --candidates runs/shipped_pbr --objects toolcap --methods supervised-edge
@@ -39,6 +39,7 @@ from don_gym.errors import DonGymError  # noqa: E402
 from don_gym.evaluation.datasets import build_evaluation_datasets  # noqa: E402
 from don_gym.evaluation.splits import FRAMES_PER_SCENE, SCENES_PER_SEED, SPLIT_SEEDS  # noqa: E402
 from don_gym.evaluation.tracking import TrackingConfig, evaluate_tracking_depths  # noqa: E402
+from don_gym.learning.checkpoints import read_checkpoint_metadata  # noqa: E402
 from don_gym.sim.pbr import INSTALL_HINT, mitsuba_available  # noqa: E402
 from don_gym.stats import format_estimate  # noqa: E402
 
@@ -85,7 +86,8 @@ def evaluate_object(args: argparse.Namespace, object_name: str) -> str:
             f"benchmarks/train_shipped.py --renderer {args.renderer} --no-ship --work {args.candidates} first"
         )
     shipped = [n for n in object_networks(object_name) if n.rsplit("/", 1)[-1] in args.methods]
-    models = ["oracle", *shipped, *(str(p) for p in candidates.values())]
+    also = [p for p in args.also if read_checkpoint_metadata(p).object_name == object_name]
+    models = ["oracle", *shipped, *(str(p) for p in candidates.values()), *also]
     labels = {str(p): label for label, p in candidates.items()}
     p50_target, p99_target = TRACKING_TARGETS_MM[object_name]
     text = [
@@ -125,6 +127,11 @@ def main() -> None:
     parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
     parser.add_argument("--points", type=int, default=16, help="reference pixels per scene")
     parser.add_argument("--workers", type=int, default=2, help="processes that build missing datasets")
+    parser.add_argument(
+        "--also", nargs="+", default=[], metavar="CHECKPOINT",
+        help="further networks to evaluate beside them (e.g. a candidate's earlier checkpoint), each on its part",
+    )  # fmt: skip
+    parser.add_argument("--section", default="fine-tune-dev", help="RESULTS.md section to record")
     parser.add_argument("--no-record", action="store_true", help="print the section; record nothing")
     args = parser.parse_args()
     if not mitsuba_available():
@@ -139,7 +146,7 @@ def main() -> None:
     )
     print(body)
     if not args.no_record:
-        record_section("fine-tune-dev", "Fine-tuned candidates on the development split, both renderers", body)
+        record_section(args.section, "Fine-tuned candidates on the development split, both renderers", body)
 
 
 if __name__ == "__main__":
