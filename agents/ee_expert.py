@@ -164,7 +164,9 @@ class EndEffectorExpert:
         at_grasp = xy_error < near_xy and yaw_error < (2 if closing else 1) * AT_YAW_RAD
         at_grasp = at_grasp and (tcp[2] - grasp[2] < near_z or on_table)
         if at_grasp:
-            return np.array([0.0, 0.0, 0.0, dyaw, -1.0], dtype=np.float32)
+            # Close while holding the hand at the grasp point: a hand left to drift while the fingers close (about
+            # 15 steps) grasps the part off centre, or above it.
+            return np.array([*_toward(grasp, tcp, APPROACH_STEP_M), dyaw, -1.0], dtype=np.float32)
         hover = np.array([grasp[0], grasp[1], max(grasp[2] + APPROACH_HEIGHT_M / 2, TABLE_TOP_Z_M + APPROACH_HEIGHT_M)])
         if width < OPEN_WIDTH_M:
             # Closed on nothing (or a lost part): open, and rise clear of the part meanwhile.

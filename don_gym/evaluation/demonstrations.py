@@ -47,6 +47,8 @@ DEMO_FORMAT = "don_gym-demos-1"
 OBSERVATION_KINDS = ("state", "true", "rgbd", "simulated:<network>", "don:<network>")
 #: Max steps of an episode per goal: lifting takes about 40 steps, the whole place about 110.
 EPISODE_STEPS = {"lift": 100, "place": 200}
+#: Stream of the DART noise's generator, apart from the seeds' other uses.
+NOISE_STREAM = 58
 #: Keys of the "state" kind.
 STATE_KEYS = ("ee_pose", "gripper_width", "joint_positions", "part_pose", "desired_goal")
 
@@ -118,20 +120,28 @@ def _state(expert_env: gym.Env, obs: dict[str, Any], info: dict[str, Any]) -> di
     }
 
 
-def _expert_episode(env: gym.Env, expert: EndEffectorExpert, seed: int) -> dict[str, Any]:
-    """One expert episode: the states (T + 1), actions, rewards, dones (T) and whether it succeeded."""
+def _expert_episode(env: gym.Env, expert: EndEffectorExpert, seed: int, action_noise: float) -> dict[str, Any]:
+    """One expert episode: the states (T + 1), the expert's actions, the actions run (the expert's plus Gaussian
+    noise of standard deviation ``action_noise`` on the motion, DART), rewards, dones (T) and whether it
+    succeeded. The noise is drawn from ``seed``: a replay runs the same actions."""
+    rng = np.random.default_rng([NOISE_STREAM, int(seed)])
     obs, info = env.reset(seed=seed)
-    states, actions, rewards, dones = [_state(env, obs, info)], [], [], []
+    states, actions, executed, rewards, dones = [_state(env, obs, info)], [], [], [], []
     done = False
     while not done:
         action = expert.act(obs)
-        obs, reward, terminated, truncated, info = env.step(action)
+        run = action.copy()
+        if action_noise > 0:
+            run[:4] = np.clip(run[:4] + action_noise * rng.standard_normal(4), -1.0, 1.0)
+        obs, reward, terminated, truncated, info = env.step(run)
         done = bool(terminated or truncated)
         states.append(_state(env, obs, info))
         actions.append(action)
+        executed.append(run)
         rewards.append(float(reward))
         dones.append(bool(terminated))
-    return {"states": states, "actions": np.array(actions, np.float32), "rewards": np.array(rewards, np.float32),
+    return {"states": states, "actions": np.array(actions, np.float32),
+            "executed_actions": np.array(executed, np.float32), "rewards": np.array(rewards, np.float32),
             "dones": np.array(dones, np.uint8), "success": bool(info.get("is_success", False))}  # fmt: skip
 
 
@@ -139,7 +149,7 @@ def _replay(env: gym.Env, kind: str, seed: int, episode: dict[str, Any]) -> list
     """``kind``'s observations (T + 1) along the episode's actions, checked to follow the recorded part poses."""
     obs, info = env.reset(seed=seed)
     observations = [_kind_observation(kind, obs)]
-    for t, action in enumerate(episode["actions"]):
+    for t, action in enumerate(episode["executed_actions"]):
         obs, _, _, _, info = env.step(action)
         observations.append(_kind_observation(kind, obs))
         recorded = episode["states"][t + 1]["part_pose"][:3]
@@ -161,16 +171,24 @@ def record_demonstrations(
     kinds: Sequence[str] = ("state", "true"),
     settings: RecordSettings | None = None,
     progress: bool = True,
+    action_noise: float = 0.0,
 ) -> Path:
     """Record ``episodes`` successful expert demonstrations of ``goal`` on ``part`` (seeds from ``seed`` up;
     failed episodes are skipped, at most as many as ``episodes``) with the observations of ``kinds`` into the
-    HDF5 file ``path`` (written atomically; layout: docs/demonstrations.md). Returns the path."""
+    HDF5 file ``path`` (written atomically; layout: docs/demonstrations.md). Returns the path.
+
+    ``action_noise`` > 0: the episodes run the expert's actions with Gaussian noise of that standard deviation
+    (action units) on the motion (dx, dy, dz, dyaw), and ``actions`` holds the expert's own for each state
+    reached: DART (Laskey et al. 2017), demonstrations that show how the expert corrects the errors a cloned
+    policy will make."""
     import h5py
 
     if goal not in EXPERT_GOALS:
         raise DonGymError(f"goal={goal!r} is unknown; expected one of {list(EXPERT_GOALS)}")
     if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
         raise DonGymError(f"episodes={episodes!r}: expected a positive number of demonstrations")
+    if isinstance(action_noise, bool) or not isinstance(action_noise, (int, float)) or not 0 <= action_noise <= 1:
+        raise DonGymError(f"action_noise={action_noise!r}: expected a standard deviation in [0, 1] (action units)")
     kinds, settings = _check_kinds(kinds), settings or RecordSettings()
     expert_env = make_goal_env(part, goal=goal, keypoints="true", max_steps=EPISODE_STEPS[goal], sensor=settings.sensor)
     kind_envs = {kind: kind_env(kind, part, goal, settings) for kind in kinds}
@@ -184,7 +202,7 @@ def record_demonstrations(
             while kept < episodes and attempts < 2 * episodes:
                 episode_seed = int(seed) + attempts
                 attempts += 1
-                episode = _expert_episode(expert_env, expert, episode_seed)
+                episode = _expert_episode(expert_env, expert, episode_seed, float(action_noise))
                 if not episode["success"]:
                     continue
                 observations = {"state": episode["states"]}
@@ -215,6 +233,7 @@ def record_demonstrations(
                  "window_px": settings.window_px, "sensor": settings.sensor}
             )  # fmt: skip
             data.attrs["expert_attempts"] = attempts
+            data.attrs["action_noise"] = float(action_noise)
             f.create_dataset("mask/all", data=np.array([f"demo_{i}" for i in range(kept)], dtype="S"))
     finally:
         expert_env.close()
@@ -231,6 +250,7 @@ def _write_demo(group: Any, kinds: list[str], observations: dict, episode: dict[
     group.attrs["num_samples"] = T
     group.attrs["seed"] = seed
     group.create_dataset("actions", data=episode["actions"])
+    group.create_dataset("executed_actions", data=episode["executed_actions"])
     group.create_dataset("rewards", data=episode["rewards"])
     group.create_dataset("dones", data=episode["dones"])
     states = _stack(episode["states"])

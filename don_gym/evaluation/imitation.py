@@ -25,6 +25,7 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from don_gym.errors import DonGymError
+from don_gym.objects import load_object
 from don_gym.evaluation.demonstrations import (
     RecordSettings,
     kind_env,
@@ -50,43 +51,77 @@ __all__ = [
 
 #: Input kinds (``<network>``: a shipped name or a checkpoint path).
 INPUTS = ("state", "true", "simulated:<network>", "don:<network>", "rgbd")
+#: Inputs seen through images (a convolutional encoder with a spatial softmax).
+IMAGE_KINDS = ("rgbd",)
 #: Steps of observation history the policy sees (the current one included).
 HISTORY = 2
 #: Held-out evaluation episodes are ``reset(seed=EVAL_SEED + i)`` (bench_rl's and bench_expert's).
 EVAL_SEED = 100_000
 #: Unit (m) of positions in the feature vectors.
 POSITION_UNIT_M = 0.05
+#: Unit (m) of the near-field copy of the offsets from the TCP.
+NEAR_UNIT_M = 0.01
 
 
 # ------------------------------------------------------------------------------ features
+def _hand_rotation(obs: dict[str, np.ndarray]) -> np.ndarray:
+    """(3, 3) R_world_hand of the TCP pose ``ee_pose`` (x, y, z, qx, qy, qz, qw)."""
+    return Rotation.from_quat(np.asarray(obs["ee_pose"], dtype=np.float64).reshape(7)[3:]).as_matrix()
+
+
 def _robot_features(obs: dict[str, np.ndarray]) -> np.ndarray:
-    """TCP position, the hand's yaw as (cos, sin) (the top-down hand's quaternion flips sign as the yaw passes pi)
-    and the finger opening."""
+    """TCP position, the hand's yaw as (cos, sin) (the top-down hand's quaternion flips sign as the yaw passes pi),
+    joint 7's angle (rad / pi: which way the wrist can still turn) and the finger opening."""
     ee = np.asarray(obs["ee_pose"], dtype=np.float64).reshape(7)
-    hand_x = Rotation.from_quat(ee[3:]).as_matrix()[:2, 0]
+    hand_x = _hand_rotation(obs)[:2, 0]
+    wrist = np.asarray(obs["joint_positions"], dtype=np.float64).reshape(-1)[6:7] / np.pi
     width = np.asarray(obs["gripper_width"], dtype=np.float64).reshape(1) / 0.04
-    return np.concatenate([ee[:3] / POSITION_UNIT_M, hand_x / max(np.linalg.norm(hand_x), 1e-9), width])
+    return np.concatenate([ee[:3] / POSITION_UNIT_M, hand_x / max(np.linalg.norm(hand_x), 1e-9), wrist, width])
+
+
+def _axis_in_hand(axis_world: np.ndarray, R_world_hand: np.ndarray) -> np.ndarray:
+    """The part's axis direction seen from the hand: its angle a from hand x in the hand's xy plane as (cos a,
+    sin a, cos 2a, sin 2a). The grasp turns the hand until a is 0 or pi (fingers across the axis); the doubled
+    angle is the same for both, the plain one tells them apart: turning is then a smooth function of these."""
+    local = R_world_hand.T @ np.asarray(axis_world, dtype=np.float64)
+    angle = float(np.arctan2(local[1], local[0]))
+    return np.array([np.cos(angle), np.sin(angle), np.cos(2 * angle), np.sin(2 * angle)])
+
+
+def _offsets(offsets_m: np.ndarray) -> np.ndarray:
+    """Offsets (m) from the TCP at two scales, flat: in :data:`POSITION_UNIT_M` across the workspace, and squashed
+    at :data:`NEAR_UNIT_M` (``tanh``), which spreads the last centimetres of the approach, where the grasp needs
+    millimetres, over the whole range of a unit."""
+    offsets = np.asarray(offsets_m, dtype=np.float64)
+    return np.concatenate([(offsets / POSITION_UNIT_M).ravel(), np.tanh(offsets / NEAR_UNIT_M).ravel()])
 
 
 def features(kind: str, obs: dict[str, np.ndarray]) -> np.ndarray:
-    """The feature vector (float32) of ``kind`` from an observation with the robot keys, ``part_pose`` for
-    "state" and the keypoint keys (un-prefixed) for keypoint kinds; for "rgbd" the robot's state only."""
+    """The feature vector (float32) of ``kind`` from an observation with the robot keys, ``part_pose`` and
+    ``part_axis`` (the part's +axis, world) for "state" and the keypoint keys (un-prefixed) for keypoint kinds; for image kinds the robot's state only.
+    Positions are from the TCP in :data:`POSITION_UNIT_M`; the part's axis as this input sees it (the true pose's,
+    or the line through the two keypoints' last seen places) also relative to the hand's yaw."""
     robot = _robot_features(obs)
-    if kind == "rgbd":
+    if kind in IMAGE_KINDS or kind.startswith("descriptors:"):
         return robot.astype(np.float32)
+    tcp = np.asarray(obs["ee_pose"], dtype=np.float64)[:3]
+    R_world_hand = _hand_rotation(obs)
     if kind == "state":
         pose = np.asarray(obs["part_pose"], dtype=np.float64)
+        R_world_part = Rotation.from_quat(pose[3:]).as_matrix()
         # The rotation's first two columns, not the quaternion: continuous, no sign to flip (Zhou et al. 2019).
-        rotation = Rotation.from_quat(pose[3:]).as_matrix()[:, :2].T.ravel()
-        tcp = np.asarray(obs["ee_pose"], dtype=np.float64)[:3]
-        return np.concatenate([robot, (pose[:3] - tcp) / POSITION_UNIT_M, rotation]).astype(np.float32)
-    tcp = np.asarray(obs["ee_pose"], dtype=np.float64)[:3]
-    points = (np.asarray(obs["keypoint_points"], dtype=np.float64) - tcp) / POSITION_UNIT_M
+        rotation = R_world_part[:, :2].T.ravel()
+        axis_world = np.asarray(obs["part_axis"], dtype=np.float64)
+        axis = _axis_in_hand(axis_world, R_world_hand)
+        offset = _offsets(pose[:3] - tcp)
+        return np.concatenate([robot, offset, rotation, axis_world, axis]).astype(np.float32)
     confidence = np.asarray(obs["keypoint_confidence"], dtype=np.float64)
-    points = np.where(confidence[:, None] > 0, points, 0.0)
-    memory = (np.asarray(obs["keypoint_memory_points"], dtype=np.float64) - tcp) / POSITION_UNIT_M
+    points = np.where(confidence[:, None] > 0, np.asarray(obs["keypoint_points"], dtype=np.float64) - tcp, 0.0)
+    remembered = np.asarray(obs["keypoint_memory_points"], dtype=np.float64)
+    points, memory = _offsets(points), _offsets(remembered - tcp)
     age = np.asarray(obs["keypoint_age"], dtype=np.float64) / 100.0
-    return np.concatenate([robot, points.ravel(), confidence, memory.ravel(), age]).astype(np.float32)
+    axis = _axis_in_hand(remembered[-1] - remembered[0], R_world_hand)
+    return np.concatenate([robot, points.ravel(), confidence, memory.ravel(), age, axis]).astype(np.float32)
 
 
 def _image(obs: dict[str, np.ndarray]) -> np.ndarray:
@@ -95,13 +130,19 @@ def _image(obs: dict[str, np.ndarray]) -> np.ndarray:
     return np.concatenate([rgb, np.asarray(obs["depth"], dtype=np.float32)[None]], axis=0)
 
 
-def _demo_steps(kind: str, demo: dict[str, np.ndarray]) -> list[dict[str, np.ndarray]]:
+def _part_axis(part_pose: np.ndarray, plus_axis: np.ndarray) -> np.ndarray:
+    """(3,) the part's +axis in the world frame from its pose (x, y, z, qx, qy, qz, qw)."""
+    return Rotation.from_quat(np.asarray(part_pose, dtype=np.float64)[3:]).as_matrix() @ plus_axis
+
+
+def _demo_steps(kind: str, demo: dict[str, np.ndarray], plus_axis: np.ndarray) -> list[dict[str, np.ndarray]]:
     """A demo's observations as per-step dicts with the un-prefixed keys :func:`features` reads."""
     prefix = "" if kind in ("state", "rgbd") else kind_name(kind) + "."
     T = len(demo["ee_pose"])
     steps = []
     for t in range(T):
-        step = {key: demo[key][t] for key in ("ee_pose", "gripper_width", "part_pose")}
+        step = {key: demo[key][t] for key in ("ee_pose", "gripper_width", "joint_positions", "part_pose")}
+        step["part_axis"] = _part_axis(step["part_pose"], plus_axis)
         for key, values in demo.items():
             if prefix and key.startswith(prefix):
                 step[key[len(prefix) :]] = values[t]
@@ -177,7 +218,7 @@ def train_policy(
     torch.manual_seed(seed)
     vectors, images, actions = [], [], []
     for demo, action in zip(demos.observations, demos.actions, strict=True):
-        rows = _demo_steps(kind, demo)
+        rows = _demo_steps(kind, demo, load_object(demos.part).plus_axis)
         vectors.append(_with_history(np.stack([features(kind, r) for r in rows]), HISTORY))
         if kind == "rgbd":
             frames = np.stack([_image(r) for r in rows])
@@ -203,10 +244,11 @@ def train_policy(
 
 
 # ------------------------------------------------------------------------------ evaluation
-def _live_step(kind: str, obs: dict[str, np.ndarray], info: dict[str, Any]) -> dict[str, np.ndarray]:
+def _live_step(obs: dict[str, np.ndarray], info: dict[str, Any], plus_axis: np.ndarray) -> dict[str, np.ndarray]:
     step = dict(obs)
     T = np.asarray(info["T_world_object"], dtype=np.float64)
     step["part_pose"] = np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_quat()])
+    step["part_axis"] = T[:3, :3] @ plus_axis
     return step
 
 
@@ -234,7 +276,7 @@ def evaluate_policy(
             history: deque = deque(maxlen=HISTORY)
             done, success = False, False
             while not done:
-                step = _live_step(kind, obs, info)
+                step = _live_step(obs, info, env.unwrapped.model.plus_axis)
                 history.append((features(kind, step), _image(step) if kind == "rgbd" else None))
                 while len(history) < HISTORY:
                     history.appendleft(history[0])
