@@ -24,7 +24,9 @@ from tqdm.auto import tqdm
 from don_gym.agents.ee_expert import EXPERT_GOALS, EndEffectorExpert
 from don_gym.errors import DonGymError
 from don_gym.io import atomic_path
+from don_gym.wrappers.descriptors import DescriptorObservation
 from don_gym.wrappers.goals import make_goal_env, make_keypoint_env
+from don_gym.wrappers.images import DescriptorImage
 
 __all__ = [
     "DEMO_FORMAT",
@@ -43,8 +45,10 @@ DEMO_FORMAT = "don_gym-demos-1"
 #: "state" (privileged: robot state, part pose, goal), "true" (the part's exact keypoints, always seen), "rgbd"
 #: (the wrist camera's RGB and sensor depth at ``rgbd_size``), "simulated:<network>" (SimulatedKeypoints with the
 #: network's noise model, field of view and depth range), "don:<network>" (the network's keypoints on the wrist
-#: camera at ``don_size``, windowed by ``window_px``). Every keypoint kind carries KeypointMemory's keys.
-OBSERVATION_KINDS = ("state", "true", "rgbd", "simulated:<network>", "don:<network>")
+#: camera at ``don_size``, windowed by ``window_px``), "descriptors:<network>" (the network's descriptor image of
+#: the wrist camera at ``don_size``, area-averaged to ``rgbd_size``, uint8). Every keypoint kind carries
+#: KeypointMemory's keys.
+OBSERVATION_KINDS = ("state", "true", "rgbd", "simulated:<network>", "don:<network>", "descriptors:<network>")
 #: Max steps of an episode per goal: lifting takes about 40 steps, the whole place about 110.
 EPISODE_STEPS = {"lift": 100, "place": 200}
 #: Stream of the DART noise's generator, apart from the seeds' other uses.
@@ -63,7 +67,7 @@ def _check_kinds(kinds: Sequence[str]) -> list[str]:
     for kind in kinds:
         source = kind.split(":", 1)
         fixed = kind in ("state", "true", "rgbd")
-        if not fixed and not (len(source) == 2 and source[0] in ("simulated", "don") and source[1]):
+        if not fixed and not (len(source) == 2 and source[0] in ("simulated", "don", "descriptors") and source[1]):
             raise DonGymError(f"observation kind {kind!r} is unknown; expected one of {list(OBSERVATION_KINDS)}")
         if kind not in out:
             out.append(kind)
@@ -82,11 +86,14 @@ class RecordSettings:
     sensor: str = "d435"
 
 
-def kind_env(kind: str, part: str, goal: str, settings: RecordSettings, observe_state: bool = False) -> gym.Env | None:
-    """The env (``control="ee"``, ``goal``'s episode length) whose observations are ``kind``'s; for "state" None
-    (the recorder reads it from the expert's own env), or with ``observe_state`` the env without images."""
+def kind_env(
+    kind: str, part: str, goal: str, settings: RecordSettings, observe_state: bool = False, background: str = "plain"
+) -> gym.Env | None:
+    """The env (``control="ee"``, ``goal``'s episode length, ``background``) whose observations are ``kind``'s;
+    for "state" None (the recorder reads it from the expert's own env), or with ``observe_state`` the env without
+    images."""
     steps = EPISODE_STEPS[goal]
-    common = {"control": "ee", "max_steps": steps, "sensor": settings.sensor}
+    common = {"control": "ee", "max_steps": steps, "sensor": settings.sensor, "background": background}
     if kind == "state":
         return make_keypoint_env(part, None, image_size=None, **common) if observe_state else None
     if kind == "rgbd":
@@ -94,6 +101,9 @@ def kind_env(kind: str, part: str, goal: str, settings: RecordSettings, observe_
     if kind == "true":
         return make_keypoint_env(part, "true", memory=True, **common)
     source, network = kind.split(":", 1)
+    if source == "descriptors":
+        env = make_keypoint_env(part, None, image_size=settings.don_size, **common)
+        return DescriptorImage(DescriptorObservation(env, model=network), size=settings.rgbd_size)
     if source == "simulated":
         return make_keypoint_env(part, "simulated", network, memory=True, **common)
     return make_keypoint_env(
@@ -104,6 +114,8 @@ def kind_env(kind: str, part: str, goal: str, settings: RecordSettings, observe_
 def _kind_observation(kind: str, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     if kind == "rgbd":
         return {"rgb": obs["rgb"], "depth": obs["depth"]}
+    if kind.startswith("descriptors:"):
+        return {"descriptors": obs["descriptors"]}
     return {key: value for key, value in obs.items() if key.startswith("keypoint_")}
 
 
@@ -259,7 +271,8 @@ def _write_demo(group: Any, kinds: list[str], observations: dict, episode: dict[
         stacked = _stack(observations[kind])
         for key, values in stacked.items():
             name = key if kind in ("state", "rgbd") else f"{kind_name(kind)}.{key}"
-            options = {"compression": "gzip", "compression_opts": 4} if values.ndim >= 3 and kind == "rgbd" else {}
+            images = kind == "rgbd" or kind.startswith("descriptors:")
+            options = {"compression": "gzip", "compression_opts": 4} if values.ndim >= 3 and images else {}
             group.create_dataset(f"obs/{name}", data=values[:T], **options)
             group.create_dataset(f"next_obs/{name}", data=values[1:], **options)
 
@@ -267,7 +280,7 @@ def _write_demo(group: Any, kinds: list[str], observations: dict, episode: dict[
 @dataclass
 class Demonstrations:
     """Demonstrations read by :func:`read_demonstrations`: per demo, ``obs`` (key -> (T, ...)) and ``actions``
-    (T, 5); the file's part, goal and kinds."""
+    (T, 5, the expert's); the file's part, goal, kinds and the DART noise its episodes ran with."""
 
     part: str
     goal: str
@@ -275,6 +288,7 @@ class Demonstrations:
     observations: list[dict[str, np.ndarray]]
     actions: list[np.ndarray]
     seeds: list[int]
+    action_noise: float = 0.0
 
 
 def read_demonstrations(
@@ -319,4 +333,5 @@ def read_demonstrations(
         actions = [data[name]["actions"][()] for name in names]
         seeds = [int(data[name].attrs["seed"]) for name in names]
         kinds = json.loads(data.attrs["kinds"])
-    return Demonstrations(file_part, file_goal, kinds, observations, actions, seeds)
+        noise = float(data.attrs.get("action_noise", 0.0))
+    return Demonstrations(file_part, file_goal, kinds, observations, actions, seeds, noise)
