@@ -38,7 +38,7 @@ def test_cloned_policy_fits_the_expert(lift_demos, kind):
     demos = read_demonstrations(lift_demos, count=3)
     policy = train_policy(kind, demos, steps=400, seed=0)
     first = demos.observations[0]
-    rows = [features(kind, step) for step in demo_steps(kind, first, load_object("toolcap").plus_axis)]
+    rows = [features(kind, step) for step in demo_steps(kind, first, load_object("toolcap"))]
     vectors = np.concatenate([np.stack([rows[0]] + rows[:-1]), np.stack(rows)], axis=1)
     assert vectors.shape[1] == HISTORY * len(rows[0])
     with torch.inference_mode():
@@ -87,7 +87,7 @@ def test_descriptor_image_input_goes_through_the_image_encoder(tmp_path):
     assert descriptors.std() > 5  # an image of the part and the table, not a constant
     policy = train_policy(kind, demos, steps=5, seed=0)
     assert policy.encoder is not None and policy.encoder.net[0].in_channels == 3
-    step = demo_steps(kind, demos.observations[0], load_object("toolcap").plus_axis)[0]
+    step = demo_steps(kind, demos.observations[0], load_object("toolcap"))[0]
     assert image(kind, step).shape == (3, 36, 48)
     evaluation = evaluate_policy(policy, kind, "toolcap", "lift", episodes=1, settings=settings)
     assert evaluation.steps >= 1
@@ -127,3 +127,12 @@ def test_cli_refuses_more_demonstrations_than_recorded(lift_demos):
     done = subprocess.run(command, capture_output=True, text=True, timeout=300)
     assert done.returncode == 2, done.stderr
     assert done.stderr.strip().count("\n") == 0 and "count=9" in done.stderr and "hold 3" in done.stderr
+
+
+def test_training_on_an_input_the_demonstrations_lack_is_a_one_line_error(lift_demos):
+    demos = read_demonstrations(lift_demos, count=1)
+    for kind, message in [("rgbd", r"lack the input 'rgbd'; they have \['state', 'true'\]"),
+                          ("pixels", "input 'pixels' is unknown")]:  # fmt: skip
+        with pytest.raises(DonGymError, match=message) as error:
+            train_policy(kind, demos, steps=1)
+        assert "\n" not in str(error.value)

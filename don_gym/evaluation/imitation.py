@@ -27,6 +27,7 @@ from don_gym.evaluation.demonstrations import RecordSettings, kind_env, read_dem
 from don_gym.evaluation.imitation_policy import (
     HISTORY,
     HistoryPolicy,
+    PartGeometry,
     check_input,
     features,
     image,
@@ -107,6 +108,7 @@ def evaluate_policy(
     env = kind_env(kind, part, goal, settings or RecordSettings(), observe_state=True, background=background)
     model = env.unwrapped.model
     targets = axis_end_targets(model)
+    geometry = PartGeometry.of(model)
     images = is_image_kind(kind)
     wins, steps, seconds = 0, 0, 0.0
     try:
@@ -118,7 +120,7 @@ def evaluate_policy(
             done, success = False, False
             while not done:
                 started = time.perf_counter()
-                step = live_step(obs, info, model.plus_axis)
+                step = live_step(obs, info, geometry)
                 history.append((features(kind, step), image(kind, step) if images else None))
                 while len(history) < HISTORY:
                     history.appendleft(history[0])

@@ -6,14 +6,15 @@ vector, the robot's own state (TCP position, hand yaw, wrist angle, finger openi
 encoder with a spatial softmax first (:class:`SpatialSoftmaxEncoder`, the reference's end-to-end baseline), trained
 with it. :func:`train_policy` clones the expert by mean squared action error.
 
-Inputs (:data:`INPUTS`; ``<network>``: a shipped name or a checkpoint path): ``"state"`` (the part's true pose: the
-upper bound), ``"true"`` (its exact keypoints with memory), ``"simulated:<network>"``, ``"don:<network>"``
-(keypoints with :class:`~don_gym.wrappers.KeypointMemory`), ``"rgbd"`` (wrist RGB-D), ``"descriptors:<network>"``
-(the network's descriptor image of the wrist camera).
+Inputs (:data:`INPUTS`; ``<network>``: a shipped name or a checkpoint path): ``"state"`` (the part's true pose, its
+grasp point and axis: the upper bound), ``"true"`` (its exact keypoints with memory), ``"simulated:<network>"``,
+``"don:<network>"`` (keypoints with :class:`~don_gym.wrappers.KeypointMemory`), ``"rgbd"`` (wrist RGB-D),
+``"descriptors:<network>"`` (the network's descriptor image of the wrist camera).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -24,7 +25,9 @@ from tqdm.auto import tqdm
 
 from don_gym.errors import DonGymError
 from don_gym.evaluation.demonstrations import kind_name
-from don_gym.objects import load_object
+from don_gym.geometry import transform_from_pose
+from don_gym.objects import ObjectModel, load_object
+from don_gym.sim.task import grasp_point_object
 
 __all__ = [
     "HISTORY",
@@ -33,6 +36,7 @@ __all__ = [
     "NEAR_UNIT_M",
     "POSITION_UNIT_M",
     "HistoryPolicy",
+    "PartGeometry",
     "SpatialSoftmaxEncoder",
     "check_input",
     "demo_steps",
@@ -103,8 +107,8 @@ def _offsets(offsets_m: np.ndarray) -> np.ndarray:
 
 def features(kind: str, obs: dict[str, np.ndarray]) -> np.ndarray:
     """The feature vector (float32) of ``kind`` from a step's observation: the robot keys (``ee_pose``,
-    ``gripper_width``, ``joint_positions``), for "state" ``part_pose`` and ``part_axis`` (the part's +axis, world),
-    for keypoint kinds the keypoint keys (un-prefixed); for image kinds the robot's state only.
+    ``gripper_width``, ``joint_positions``), for "state" ``part_pose``, ``part_axis`` and ``part_grasp_point``
+    (:func:`live_step`), for keypoint kinds the keypoint keys (un-prefixed); for image kinds the robot's state only.
 
     Positions are offsets from the TCP (:func:`_offsets`); the part's axis as this input sees it (the true
     pose's, or the line through the two keypoints' last seen places) also relative to the hand's yaw."""
@@ -119,7 +123,8 @@ def features(kind: str, obs: dict[str, np.ndarray]) -> np.ndarray:
         rotation = Rotation.from_quat(pose[3:]).as_matrix()[:, :2].T.ravel()
         axis_world = np.asarray(obs["part_axis"], dtype=np.float64)
         axis = _axis_in_hand(axis_world, R_world_hand)
-        return np.concatenate([robot, _offsets(pose[:3] - tcp), rotation, axis_world, axis]).astype(np.float32)
+        grasp = _offsets(np.asarray(obs["part_grasp_point"], dtype=np.float64) - tcp)
+        return np.concatenate([robot, grasp, rotation, axis_world, axis]).astype(np.float32)
     confidence = np.asarray(obs["keypoint_confidence"], dtype=np.float64)
     points = np.where(confidence[:, None] > 0, np.asarray(obs["keypoint_points"], dtype=np.float64) - tcp, 0.0)
     remembered = np.asarray(obs["keypoint_memory_points"], dtype=np.float64)
@@ -138,19 +143,34 @@ def image(kind: str, obs: dict[str, np.ndarray]) -> np.ndarray:
     return (np.asarray(obs["descriptors"], dtype=np.float32).transpose(2, 0, 1) / 255.0).astype(np.float16)
 
 
-def _part_axis(part_pose: np.ndarray, plus_axis: np.ndarray) -> np.ndarray:
-    """(3,) the part's +axis in the world frame from its pose (x, y, z, qx, qy, qz, qw)."""
-    return Rotation.from_quat(np.asarray(part_pose, dtype=np.float64)[3:]).as_matrix() @ plus_axis
+@dataclass(frozen=True)
+class PartGeometry:
+    """What "state" knows of the part in its own frame: its +axis (3,) and its grasp point (3, m,
+    :func:`~don_gym.sim.task.grasp_point_object`)."""
+
+    plus_axis: np.ndarray
+    grasp_point: np.ndarray
+
+    @classmethod
+    def of(cls, model: ObjectModel) -> PartGeometry:
+        return cls(np.asarray(model.plus_axis, dtype=np.float64), grasp_point_object(model))
+
+    def world(self, T_world_object: np.ndarray) -> dict[str, np.ndarray]:
+        """``part_axis`` and ``part_grasp_point`` in the world frame for the part at ``T_world_object``."""
+        T = np.asarray(T_world_object, dtype=np.float64)
+        return {"part_axis": T[:3, :3] @ self.plus_axis, "part_grasp_point": T[:3, :3] @ self.grasp_point + T[:3, 3]}
 
 
-def demo_steps(kind: str, demo: dict[str, np.ndarray], plus_axis: np.ndarray) -> list[dict[str, np.ndarray]]:
+def demo_steps(kind: str, demo: dict[str, np.ndarray], model: ObjectModel) -> list[dict[str, np.ndarray]]:
     """A recorded demo's observations as per-step dicts with the un-prefixed keys :func:`features` and
-    :func:`image` read; ``plus_axis`` (3,): the part's +axis in its own frame."""
+    :func:`image` read; ``model``: the demonstrations' part."""
     prefix = "" if kind in ("state", "rgbd") else kind_name(kind) + "."
+    geometry = PartGeometry.of(model)
     steps = []
     for t in range(len(demo["ee_pose"])):
         step = {key: demo[key][t] for key in ("ee_pose", "gripper_width", "joint_positions", "part_pose")}
-        step["part_axis"] = _part_axis(step["part_pose"], plus_axis)
+        pose = np.asarray(step["part_pose"], dtype=np.float64)
+        step.update(geometry.world(transform_from_pose(pose[:3], pose[3:])))
         for key, values in demo.items():
             if prefix and key.startswith(prefix):
                 step[key[len(prefix) :]] = values[t]
@@ -160,12 +180,12 @@ def demo_steps(kind: str, demo: dict[str, np.ndarray], plus_axis: np.ndarray) ->
     return steps
 
 
-def live_step(obs: dict[str, np.ndarray], info: dict[str, Any], plus_axis: np.ndarray) -> dict[str, np.ndarray]:
-    """An env's observation with the true part pose and axis added from ``info`` (what "state" sees)."""
+def live_step(obs: dict[str, np.ndarray], info: dict[str, Any], geometry: PartGeometry) -> dict[str, np.ndarray]:
+    """An env's observation with what "state" sees of the part (its ``geometry``) added from ``info``."""
     step = dict(obs)
     T = np.asarray(info["T_world_object"], dtype=np.float64)
     step["part_pose"] = np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_quat()])
-    step["part_axis"] = T[:3, :3] @ np.asarray(plus_axis, dtype=np.float64)
+    step.update(geometry.world(T))
     return step
 
 
@@ -240,11 +260,16 @@ def train_policy(
     """Behaviour cloning (mean squared action error, Adam) of a :class:`HistoryPolicy` on ``kind``'s features of
     the :class:`~don_gym.evaluation.demonstrations.Demonstrations` (their ``actions``: the expert's), ``steps``
     gradient steps of ``batch`` steps each."""
+    check_input(kind)
+    if kind not in demos.kinds:
+        raise DonGymError(f"the demonstrations lack the input {kind!r}; they have {demos.kinds}")
+    if not demos.actions:
+        raise DonGymError("no demonstrations to clone: expected at least one")
     torch.manual_seed(seed)
-    plus_axis = load_object(demos.part).plus_axis
+    model = load_object(demos.part)
     vectors, frames, lengths = [], [], []
     for demo in demos.observations:
-        rows = demo_steps(kind, demo, plus_axis)
+        rows = demo_steps(kind, demo, model)
         vectors.append(np.stack([features(kind, r) for r in rows]))
         if is_image_kind(kind):
             frames.append(np.stack([image(kind, r) for r in rows]))
