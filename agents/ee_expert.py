@@ -7,8 +7,10 @@ step can be relabelled, resumed or perturbed, and behaviour cloning learns a fun
 reference's experts and robomimic's are of this kind). The phases of a grasp are read off the state:
 
 - not holding the part: open the fingers and go above the grasp point turned across the part's axis, then
-  down to it; at it (or with a fingertip on the table) close;
-- holding it (both fingers touch it): for ``goal="lift"`` carry the part's axis points to the goal's; for
+  down to it; at it (or with a fingertip on the table) close, holding the hand there;
+- both fingers on it, still closing: squeeze until the opening settles;
+- holding it (both fingers touch it, the opening settled): for ``goal="lift"`` raise the part's axis points straight
+  up to the goal's height; for
   ``goal="place"`` lift to carrying height, carry the part's centre of mass over the cradle with its +axis
   along the target direction, lower it slowly, and open when it touches the cradle;
 - not holding it with the part lying in the cradle placed well enough: open and retract.
@@ -24,7 +26,15 @@ from scipy.spatial.transform import Rotation
 
 from don_gym.errors import DonGymError
 from don_gym.perception.descriptor_sources import axis_end_targets
-from don_gym.sim.robot import EE_STEP_M, EE_WRIST_MAX_RAD, EE_YAW_STEP_RAD, MAX_WIDTH_M, MIN_TCP_HEIGHT_M, wrap_angle
+from don_gym.sim.robot import (
+    EE_STEP_M,
+    EE_WRIST_MAX_RAD,
+    EE_YAW_STEP_RAD,
+    FINGER_JOINTS,
+    MAX_WIDTH_M,
+    MIN_TCP_HEIGHT_M,
+    wrap_angle,
+)
 from don_gym.sim.script import APPROACH_HEIGHT_M, CARRY_HEIGHT_M
 from don_gym.sim.task import (
     CRADLE_APEX_HEIGHT_M,
@@ -58,6 +68,8 @@ ABOVE_XY_M = 0.012
 OVER_CRADLE_M, NEAR_CRADLE_M = 0.005, 0.03
 #: Open enough to go down around the part (m).
 OPEN_WIDTH_M = MAX_WIDTH_M - 0.005
+#: The finger opening counts as settled on the part below this speed (m/s; closing runs at about 0.08).
+SETTLED_SPEED_M_S = 0.01
 #: Share of the yaw error turned per step.
 YAW_GAIN = 0.5
 #: Margin (rad) kept from joint 7's limits when choosing which of the two yaws across the axis to grasp with.
@@ -132,6 +144,13 @@ class EndEffectorExpert:
         # Half the error a step: the env turns from the yaw it commanded last, which the measured yaw lags.
         return float(np.clip(YAW_GAIN * error / EE_YAW_STEP_RAD, -1.0, 1.0)), abs(error)
 
+    def _fingers_moving(self) -> bool:
+        """Whether the finger opening still changes faster than :data:`SETTLED_SPEED_M_S` (the simulator's joint
+        velocities: privileged, Markov)."""
+        robot = self.base.robot
+        states = robot.sim.client.getJointStates(robot.body_id, list(FINGER_JOINTS))
+        return abs(sum(state[1] for state in states)) > SETTLED_SPEED_M_S
+
     # ------------------------------------------------------------------- act
     def act(self, obs: Any = None) -> np.ndarray:
         """The action (5,) float32 for the env's current state."""
@@ -143,6 +162,11 @@ class EndEffectorExpert:
         axis = task.part.plus_axis_world()
         axis_yaw = float(np.arctan2(axis[1], axis[0]))
         if all(contacts.fingers):
+            if self._fingers_moving():
+                # Both fingers on the part but still closing: squeeze, then lift. Lifting at the first touch of the
+                # second finger leaves the moment unseen from the finger opening alone (the cloned policy lifts too
+                # early, or never); a settled opening marks it.
+                return np.array([0.0, 0.0, 0.0, 0.0, -1.0], dtype=np.float32)
             return self._holding(obs, tcp, hand_yaw, axis_yaw, contacts)
         placement = task.placement(contacts)
         if (
@@ -164,7 +188,9 @@ class EndEffectorExpert:
         at_grasp = xy_error < near_xy and yaw_error < (2 if closing else 1) * AT_YAW_RAD
         at_grasp = at_grasp and (tcp[2] - grasp[2] < near_z or on_table)
         if at_grasp:
-            return np.array([0.0, 0.0, 0.0, dyaw, -1.0], dtype=np.float32)
+            # Close while holding the hand at the grasp point: a hand left to drift while the fingers close (about
+            # 15 steps) grasps the part off centre, or above it.
+            return np.array([*_toward(grasp, tcp, APPROACH_STEP_M), dyaw, -1.0], dtype=np.float32)
         hover = np.array([grasp[0], grasp[1], max(grasp[2] + APPROACH_HEIGHT_M / 2, TABLE_TOP_Z_M + APPROACH_HEIGHT_M)])
         if width < OPEN_WIDTH_M:
             # Closed on nothing (or a lost part): open, and rise clear of the part meanwhile.
@@ -188,7 +214,10 @@ class EndEffectorExpert:
                 raise DonGymError("EndEffectorExpert(goal='lift') needs observations with 'desired_goal'")
             desired = np.asarray(obs["desired_goal"], dtype=np.float64).reshape(2, 3).mean(axis=0)
             achieved = axis_points_world(self.base.model, self.targets, task.part.T_world_object).mean(axis=0)
-            move = _toward(tcp + (desired - achieved), tcp, CARRY_STEP_M)
+            # Straight up to the goal's height: the goal's horizontal offset is only the few millimetres the grasp
+            # pushed the part, well inside the goal's tolerance, and a policy that does not see the goal (a cloned
+            # one, whose inputs must not leak where the part lay) could not follow it.
+            move = _toward(tcp + np.array([0.0, 0.0, desired[2] - achieved[2]]), tcp, CARRY_STEP_M)
             return np.array([*move, 0.0, -1.0], dtype=np.float32)
         com = task.part.center_of_mass_world
         carry_z = TABLE_TOP_Z_M + CARRY_HEIGHT_M

@@ -113,3 +113,37 @@ def test_bad_demonstration_requests_are_one_line_errors(tmp_path):
     with pytest.raises(DonGymError, match="observation kind 'depth' is unknown"):
         record_demonstrations(tmp_path / "x.hdf5", kinds=["depth"], progress=False)
     assert not (tmp_path / "x.hdf5").exists()
+
+
+def test_dart_demonstrations_run_noisy_actions_and_keep_the_experts(tmp_path):
+    """With action_noise the episodes run the expert's actions plus noise on the motion, the file labels each state
+    with the expert's own action, and the other kinds replay what ran (the replay checks it step by step)."""
+    path = record_demonstrations(
+        tmp_path / "dart.hdf5", "toolcap", "lift", episodes=1, seed=4, kinds=["true"], progress=False,
+        action_noise=0.1,
+    )  # fmt: skip
+    with h5py.File(path, "r") as f:
+        demo = f["data/demo_0"]
+        expert, executed = demo["actions"][()], demo["executed_actions"][()]
+        assert f["data"].attrs["action_noise"] == 0.1
+    motion = executed[:, :4] - expert[:, :4]
+    assert 0.05 < np.std(motion) < 0.15  # the noise, clipped at the action box's edge
+    np.testing.assert_array_equal(executed[:, 4], expert[:, 4])  # the gripper is never perturbed
+    assert read_demonstrations(path).action_noise == 0.1
+    # The expert holds its hand at the grasp point while closing: it corrects the drift noise causes there.
+    env = make_goal_env("toolcap", goal="lift", keypoints="true", max_steps=100)
+    try:
+        obs, _ = env.reset(seed=4)
+        expert_policy = EndEffectorExpert(env, "lift")
+        while env.unwrapped.robot.gripper_width() > 0.07:  # until the fingers are closing
+            obs, *_ = env.step(expert_policy.act(obs))
+        obs, *_ = env.step(np.array([0.0, 0.0, 0.2, 0.0, -1.0], np.float32))  # knocked up some millimetres
+        action = expert_policy.act(obs)
+        assert action[4] == -1.0 and action[2] < -0.05  # still closing, and back down
+    finally:
+        env.close()
+    for noise in (-0.1, 1.5, True, "0.1"):
+        with pytest.raises(DonGymError, match="action_noise=") as error:
+            record_demonstrations(tmp_path / "x.hdf5", action_noise=noise, progress=False)
+        assert "\n" not in str(error.value)
+    assert not (tmp_path / "x.hdf5").exists()

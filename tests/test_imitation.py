@@ -14,15 +14,16 @@ from don_gym.errors import DonGymError
 
 pytest.importorskip("h5py")
 
-from don_gym.evaluation.demonstrations import read_demonstrations, record_demonstrations  # noqa: E402
+from don_gym.evaluation.demonstrations import RecordSettings, read_demonstrations, record_demonstrations  # noqa: E402
 from don_gym.evaluation.imitation import (  # noqa: E402
-    HISTORY,
+    GENERALISATION,
     ImitationConfig,
     evaluate_policy,
-    features,
+    input_for_part,
     run_imitation,
-    train_policy,
 )
+from don_gym.evaluation.imitation_policy import HISTORY, demo_steps, features, image, train_policy  # noqa: E402
+from don_gym.objects import load_object  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -37,12 +38,7 @@ def test_cloned_policy_fits_the_expert(lift_demos, kind):
     demos = read_demonstrations(lift_demos, count=3)
     policy = train_policy(kind, demos, steps=400, seed=0)
     first = demos.observations[0]
-    prefix = "" if kind == "state" else "true."
-    rows = [
-        features(kind, {**{k: first[k][t] for k in ("ee_pose", "gripper_width", "part_pose")},
-                        **{k[len(prefix):]: first[k][t] for k in first if prefix and k.startswith(prefix)}})
-        for t in range(len(demos.actions[0]))
-    ]  # fmt: skip
+    rows = [features(kind, step) for step in demo_steps(kind, first, load_object("toolcap"))]
     vectors = np.concatenate([np.stack([rows[0]] + rows[:-1]), np.stack(rows)], axis=1)
     assert vectors.shape[1] == HISTORY * len(rows[0])
     with torch.inference_mode():
@@ -50,8 +46,8 @@ def test_cloned_policy_fits_the_expert(lift_demos, kind):
     expert = demos.actions[0]
     # Far better than the best constant action: the policy learned the expert's map from state to action.
     assert np.mean((predicted - expert) ** 2) < 0.3 * np.mean((expert - expert.mean(axis=0)) ** 2)
-    wins = evaluate_policy(policy, kind, "toolcap", "lift", episodes=1)
-    assert wins in (0, 1)
+    evaluation = evaluate_policy(policy, kind, "toolcap", "lift", episodes=1)
+    assert evaluation.wins in (0, 1) and evaluation.steps >= 1 and evaluation.seconds > 0
 
 
 def test_bad_imitation_input_is_one_line_errors(lift_demos, tmp_path):
@@ -74,3 +70,69 @@ def test_cli_refuses_demonstrations_of_another_task(lift_demos, tmp_path):
     done = subprocess.run(command, capture_output=True, text=True, timeout=300)
     assert done.returncode == 2, done.stderr
     assert done.stderr.strip().count("\n") == 0 and "expected 'place'" in done.stderr
+
+
+def test_descriptor_image_input_goes_through_the_image_encoder(tmp_path):
+    """ "descriptors:<network>": the network's descriptor image of the wrist camera, recorded and fed to the same
+    spatial-softmax encoder as RGB-D."""
+    torch.set_num_threads(1)
+    kind = "descriptors:toolcap/supervised-edge"
+    settings = RecordSettings(rgbd_size=(48, 36), don_size=(160, 120))
+    path = record_demonstrations(
+        tmp_path / "d.hdf5", "toolcap", "lift", episodes=1, seed=2, kinds=[kind], settings=settings, progress=False
+    )
+    demos = read_demonstrations(path, count=1)
+    descriptors = demos.observations[0]["descriptors-toolcap-supervised-edge.descriptors"]
+    assert descriptors.dtype == np.uint8 and descriptors.shape[1:] == (36, 48, 3)
+    assert descriptors.std() > 5  # an image of the part and the table, not a constant
+    policy = train_policy(kind, demos, steps=5, seed=0)
+    assert policy.encoder is not None and policy.encoder.net[0].in_channels == 3
+    step = demo_steps(kind, demos.observations[0], load_object("toolcap"))[0]
+    assert image(kind, step).shape == (3, 36, 48)
+    evaluation = evaluate_policy(policy, kind, "toolcap", "lift", episodes=1, settings=settings)
+    assert evaluation.steps >= 1
+
+
+def test_generalisation_columns_and_the_cost_of_a_step(lift_demos, tmp_path):
+    assert input_for_part("don:toolcap/supervised-edge", "toolcap", "shaft") == "don:shaft/supervised-edge"
+    assert input_for_part("state", "toolcap", "shaft") == "state"
+    assert input_for_part("don:runs/mine.safetensors", "toolcap", "shaft") is None
+    config = ImitationConfig(inputs=("state", "true"), demonstrations=(1, 2), episodes=1, train_steps=5,
+                             generalisation_n=2)  # fmt: skip
+    result = run_imitation(config, tmp_path, demos=lift_demos, progress=False)
+    assert set(result.generalisation) == set(GENERALISATION)
+    assert all(result.generalisation[c][name] in (0, 1) for c in GENERALISATION for name in config.inputs)
+    assert (tmp_path / "demos_shaft_lift.hdf5").is_file()
+    assert read_demonstrations(tmp_path / "demos_shaft_lift.hdf5").part == "shaft"
+    assert all(result.seconds_per_step[name] > 0 for name in config.inputs)
+    header = result.table().splitlines()[0]
+    assert "random background (N = 2)" in header and "shaft (N = 2)" in header and "ms / step" in header
+    assert len(result.table().splitlines()) == 2 + len(config.inputs)
+
+
+def test_bad_generalisation_and_input_names_are_one_line_errors(lift_demos, tmp_path):
+    cases = [
+        (ImitationConfig(inputs=("true",), demonstrations=(2,), generalisation_n=3), r"generalisation_n=3: expected"),
+        (ImitationConfig(inputs=("descriptors:",), demonstrations=(2,)), "input 'descriptors:' is unknown"),
+    ]
+    for config, message in cases:
+        with pytest.raises(DonGymError, match=message) as error:
+            run_imitation(config, tmp_path, demos=lift_demos, progress=False)
+        assert "\n" not in str(error.value)
+
+
+def test_cli_refuses_more_demonstrations_than_recorded(lift_demos):
+    command = [sys.executable, "-m", "don_gym.cli", "benchmark", "imitation", "--inputs", "true", "--demos", "2", "9",
+               "--episodes", "1", "--demos-file", str(lift_demos), "--no-progress"]  # fmt: skip
+    done = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip().count("\n") == 0 and "count=9" in done.stderr and "hold 3" in done.stderr
+
+
+def test_training_on_an_input_the_demonstrations_lack_is_a_one_line_error(lift_demos):
+    demos = read_demonstrations(lift_demos, count=1)
+    for kind, message in [("rgbd", r"lack the input 'rgbd'; they have \['state', 'true'\]"),
+                          ("pixels", "input 'pixels' is unknown")]:  # fmt: skip
+        with pytest.raises(DonGymError, match=message) as error:
+            train_policy(kind, demos, steps=1)
+        assert "\n" not in str(error.value)

@@ -24,7 +24,9 @@ from tqdm.auto import tqdm
 from don_gym.agents.ee_expert import EXPERT_GOALS, EndEffectorExpert
 from don_gym.errors import DonGymError
 from don_gym.io import atomic_path
+from don_gym.wrappers.descriptors import DescriptorObservation
 from don_gym.wrappers.goals import make_goal_env, make_keypoint_env
+from don_gym.wrappers.images import DescriptorImage
 
 __all__ = [
     "DEMO_FORMAT",
@@ -43,10 +45,14 @@ DEMO_FORMAT = "don_gym-demos-1"
 #: "state" (privileged: robot state, part pose, goal), "true" (the part's exact keypoints, always seen), "rgbd"
 #: (the wrist camera's RGB and sensor depth at ``rgbd_size``), "simulated:<network>" (SimulatedKeypoints with the
 #: network's noise model, field of view and depth range), "don:<network>" (the network's keypoints on the wrist
-#: camera at ``don_size``, windowed by ``window_px``). Every keypoint kind carries KeypointMemory's keys.
-OBSERVATION_KINDS = ("state", "true", "rgbd", "simulated:<network>", "don:<network>")
+#: camera at ``don_size``, windowed by ``window_px``), "descriptors:<network>" (the network's descriptor image of
+#: the wrist camera at ``don_size``, area-averaged to ``rgbd_size``, uint8). Every keypoint kind carries
+#: KeypointMemory's keys.
+OBSERVATION_KINDS = ("state", "true", "rgbd", "simulated:<network>", "don:<network>", "descriptors:<network>")
 #: Max steps of an episode per goal: lifting takes about 40 steps, the whole place about 110.
 EPISODE_STEPS = {"lift": 100, "place": 200}
+#: Stream of the DART noise's generator, apart from the seeds' other uses.
+NOISE_STREAM = 58
 #: Keys of the "state" kind.
 STATE_KEYS = ("ee_pose", "gripper_width", "joint_positions", "part_pose", "desired_goal")
 
@@ -61,7 +67,7 @@ def _check_kinds(kinds: Sequence[str]) -> list[str]:
     for kind in kinds:
         source = kind.split(":", 1)
         fixed = kind in ("state", "true", "rgbd")
-        if not fixed and not (len(source) == 2 and source[0] in ("simulated", "don") and source[1]):
+        if not fixed and not (len(source) == 2 and source[0] in ("simulated", "don", "descriptors") and source[1]):
             raise DonGymError(f"observation kind {kind!r} is unknown; expected one of {list(OBSERVATION_KINDS)}")
         if kind not in out:
             out.append(kind)
@@ -80,11 +86,14 @@ class RecordSettings:
     sensor: str = "d435"
 
 
-def kind_env(kind: str, part: str, goal: str, settings: RecordSettings, observe_state: bool = False) -> gym.Env | None:
-    """The env (``control="ee"``, ``goal``'s episode length) whose observations are ``kind``'s; for "state" None
-    (the recorder reads it from the expert's own env), or with ``observe_state`` the env without images."""
+def kind_env(
+    kind: str, part: str, goal: str, settings: RecordSettings, observe_state: bool = False, background: str = "plain"
+) -> gym.Env | None:
+    """The env (``control="ee"``, ``goal``'s episode length, ``background``) whose observations are ``kind``'s;
+    for "state" None (the recorder reads it from the expert's own env), or with ``observe_state`` the env without
+    images."""
     steps = EPISODE_STEPS[goal]
-    common = {"control": "ee", "max_steps": steps, "sensor": settings.sensor}
+    common = {"control": "ee", "max_steps": steps, "sensor": settings.sensor, "background": background}
     if kind == "state":
         return make_keypoint_env(part, None, image_size=None, **common) if observe_state else None
     if kind == "rgbd":
@@ -92,6 +101,9 @@ def kind_env(kind: str, part: str, goal: str, settings: RecordSettings, observe_
     if kind == "true":
         return make_keypoint_env(part, "true", memory=True, **common)
     source, network = kind.split(":", 1)
+    if source == "descriptors":
+        env = make_keypoint_env(part, None, image_size=settings.don_size, **common)
+        return DescriptorImage(DescriptorObservation(env, model=network), size=settings.rgbd_size)
     if source == "simulated":
         return make_keypoint_env(part, "simulated", network, memory=True, **common)
     return make_keypoint_env(
@@ -102,6 +114,8 @@ def kind_env(kind: str, part: str, goal: str, settings: RecordSettings, observe_
 def _kind_observation(kind: str, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     if kind == "rgbd":
         return {"rgb": obs["rgb"], "depth": obs["depth"]}
+    if kind.startswith("descriptors:"):
+        return {"descriptors": obs["descriptors"]}
     return {key: value for key, value in obs.items() if key.startswith("keypoint_")}
 
 
@@ -118,20 +132,28 @@ def _state(expert_env: gym.Env, obs: dict[str, Any], info: dict[str, Any]) -> di
     }
 
 
-def _expert_episode(env: gym.Env, expert: EndEffectorExpert, seed: int) -> dict[str, Any]:
-    """One expert episode: the states (T + 1), actions, rewards, dones (T) and whether it succeeded."""
+def _expert_episode(env: gym.Env, expert: EndEffectorExpert, seed: int, action_noise: float) -> dict[str, Any]:
+    """One expert episode: the states (T + 1), the expert's actions, the actions run (the expert's plus Gaussian
+    noise of standard deviation ``action_noise`` on the motion, DART), rewards, dones (T) and whether it
+    succeeded. The noise is drawn from ``seed``: a replay runs the same actions."""
+    rng = np.random.default_rng([NOISE_STREAM, int(seed)])
     obs, info = env.reset(seed=seed)
-    states, actions, rewards, dones = [_state(env, obs, info)], [], [], []
+    states, actions, executed, rewards, dones = [_state(env, obs, info)], [], [], [], []
     done = False
     while not done:
         action = expert.act(obs)
-        obs, reward, terminated, truncated, info = env.step(action)
+        run = action.copy()
+        if action_noise > 0:
+            run[:4] = np.clip(run[:4] + action_noise * rng.standard_normal(4), -1.0, 1.0)
+        obs, reward, terminated, truncated, info = env.step(run)
         done = bool(terminated or truncated)
         states.append(_state(env, obs, info))
         actions.append(action)
+        executed.append(run)
         rewards.append(float(reward))
         dones.append(bool(terminated))
-    return {"states": states, "actions": np.array(actions, np.float32), "rewards": np.array(rewards, np.float32),
+    return {"states": states, "actions": np.array(actions, np.float32),
+            "executed_actions": np.array(executed, np.float32), "rewards": np.array(rewards, np.float32),
             "dones": np.array(dones, np.uint8), "success": bool(info.get("is_success", False))}  # fmt: skip
 
 
@@ -139,7 +161,7 @@ def _replay(env: gym.Env, kind: str, seed: int, episode: dict[str, Any]) -> list
     """``kind``'s observations (T + 1) along the episode's actions, checked to follow the recorded part poses."""
     obs, info = env.reset(seed=seed)
     observations = [_kind_observation(kind, obs)]
-    for t, action in enumerate(episode["actions"]):
+    for t, action in enumerate(episode["executed_actions"]):
         obs, _, _, _, info = env.step(action)
         observations.append(_kind_observation(kind, obs))
         recorded = episode["states"][t + 1]["part_pose"][:3]
@@ -161,16 +183,24 @@ def record_demonstrations(
     kinds: Sequence[str] = ("state", "true"),
     settings: RecordSettings | None = None,
     progress: bool = True,
+    action_noise: float = 0.0,
 ) -> Path:
     """Record ``episodes`` successful expert demonstrations of ``goal`` on ``part`` (seeds from ``seed`` up;
     failed episodes are skipped, at most as many as ``episodes``) with the observations of ``kinds`` into the
-    HDF5 file ``path`` (written atomically; layout: docs/demonstrations.md). Returns the path."""
+    HDF5 file ``path`` (written atomically; layout: docs/demonstrations.md). Returns the path.
+
+    ``action_noise`` > 0: the episodes run the expert's actions with Gaussian noise of that standard deviation
+    (action units) on the motion (dx, dy, dz, dyaw), and ``actions`` holds the expert's own for each state
+    reached: DART (Laskey et al. 2017), demonstrations that show how the expert corrects the errors a cloned
+    policy will make."""
     import h5py
 
     if goal not in EXPERT_GOALS:
         raise DonGymError(f"goal={goal!r} is unknown; expected one of {list(EXPERT_GOALS)}")
     if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
         raise DonGymError(f"episodes={episodes!r}: expected a positive number of demonstrations")
+    if isinstance(action_noise, bool) or not isinstance(action_noise, (int, float)) or not 0 <= action_noise <= 1:
+        raise DonGymError(f"action_noise={action_noise!r}: expected a standard deviation in [0, 1] (action units)")
     kinds, settings = _check_kinds(kinds), settings or RecordSettings()
     expert_env = make_goal_env(part, goal=goal, keypoints="true", max_steps=EPISODE_STEPS[goal], sensor=settings.sensor)
     kind_envs = {kind: kind_env(kind, part, goal, settings) for kind in kinds}
@@ -184,7 +214,7 @@ def record_demonstrations(
             while kept < episodes and attempts < 2 * episodes:
                 episode_seed = int(seed) + attempts
                 attempts += 1
-                episode = _expert_episode(expert_env, expert, episode_seed)
+                episode = _expert_episode(expert_env, expert, episode_seed, float(action_noise))
                 if not episode["success"]:
                     continue
                 observations = {"state": episode["states"]}
@@ -215,6 +245,7 @@ def record_demonstrations(
                  "window_px": settings.window_px, "sensor": settings.sensor}
             )  # fmt: skip
             data.attrs["expert_attempts"] = attempts
+            data.attrs["action_noise"] = float(action_noise)
             f.create_dataset("mask/all", data=np.array([f"demo_{i}" for i in range(kept)], dtype="S"))
     finally:
         expert_env.close()
@@ -231,6 +262,7 @@ def _write_demo(group: Any, kinds: list[str], observations: dict, episode: dict[
     group.attrs["num_samples"] = T
     group.attrs["seed"] = seed
     group.create_dataset("actions", data=episode["actions"])
+    group.create_dataset("executed_actions", data=episode["executed_actions"])
     group.create_dataset("rewards", data=episode["rewards"])
     group.create_dataset("dones", data=episode["dones"])
     states = _stack(episode["states"])
@@ -239,7 +271,8 @@ def _write_demo(group: Any, kinds: list[str], observations: dict, episode: dict[
         stacked = _stack(observations[kind])
         for key, values in stacked.items():
             name = key if kind in ("state", "rgbd") else f"{kind_name(kind)}.{key}"
-            options = {"compression": "gzip", "compression_opts": 4} if values.ndim >= 3 and kind == "rgbd" else {}
+            images = kind == "rgbd" or kind.startswith("descriptors:")
+            options = {"compression": "gzip", "compression_opts": 4} if values.ndim >= 3 and images else {}
             group.create_dataset(f"obs/{name}", data=values[:T], **options)
             group.create_dataset(f"next_obs/{name}", data=values[1:], **options)
 
@@ -247,7 +280,7 @@ def _write_demo(group: Any, kinds: list[str], observations: dict, episode: dict[
 @dataclass
 class Demonstrations:
     """Demonstrations read by :func:`read_demonstrations`: per demo, ``obs`` (key -> (T, ...)) and ``actions``
-    (T, 5); the file's part, goal and kinds."""
+    (T, 5, the expert's); the file's part, goal, kinds and the DART noise its episodes ran with."""
 
     part: str
     goal: str
@@ -255,6 +288,7 @@ class Demonstrations:
     observations: list[dict[str, np.ndarray]]
     actions: list[np.ndarray]
     seeds: list[int]
+    action_noise: float = 0.0
 
 
 def read_demonstrations(
@@ -299,4 +333,5 @@ def read_demonstrations(
         actions = [data[name]["actions"][()] for name in names]
         seeds = [int(data[name].attrs["seed"]) for name in names]
         kinds = json.loads(data.attrs["kinds"])
-    return Demonstrations(file_part, file_goal, kinds, observations, actions, seeds)
+        noise = float(data.attrs.get("action_noise", 0.0))
+    return Demonstrations(file_part, file_goal, kinds, observations, actions, seeds, noise)

@@ -1,0 +1,154 @@
+"""Behaviour cloning at equal demonstrations per input (``don-gym benchmark imitation``), and what each input costs.
+
+(a) ``--parts comparison``: :func:`don_gym.evaluation.imitation.run_imitation` for every input (true state, the
+    part's true keypoints, simulated keypoints and DON keypoints with memory of each shipped network, end-to-end
+    RGB-D, a CNN on the supervised network's descriptor images) at N in {10, 25, 50, 100, 200} demonstrations, 100
+    held-out episodes each, with the generalisation columns at N = 50 (``background="random"``, the shaft).
+    Target (issue 58): the supervised DON keypoints at N = 50 within 10 points of true state. Hours on 2 cores
+    (the DON and descriptor inputs render 640x480 and run a network every step).
+(b) ``--parts cost``: the wall time of an env step with each input (rendering, sensor model, networks, the policy's
+    forward pass), over one episode of an untrained policy per input, beside the load other processes put on the
+    machine meanwhile.
+
+    python benchmarks/bench_imitation.py                  # both parts, records "imitation" and "imitation-cost"
+    python benchmarks/bench_imitation.py --parts cost     # the cost only (minutes), records "imitation-cost"
+    python benchmarks/bench_imitation.py --quick          # the CLI's --quick comparison, a short cost; no record
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _results import FIGURES, REPO_ROOT, OtherProcessLoad, record_section, replace_block, require_blocks  # noqa: E402
+
+import don_gym  # noqa: E402,F401  (registers the env ids)
+from don_gym.evaluation.demonstrations import RecordSettings, read_demonstrations, record_demonstrations  # noqa: E402
+from don_gym.evaluation.imitation import (  # noqa: E402
+    DEVELOPMENT_EVAL_SEED,
+    EVAL_SEED,
+    ImitationConfig,
+    evaluate_policy,
+    run_imitation,
+)
+from don_gym.evaluation.imitation_policy import train_policy  # noqa: E402
+from don_gym.plotting import plot_success_against_demonstrations  # noqa: E402
+
+NETWORKS = ("supervised-edge", "supervised-mask", "self-supervised")
+#: The quick comparison: the CLI's --quick.
+QUICK = {"inputs": ("state", "true", "simulated:{part}/supervised-edge"), "demonstrations": (10, 25),
+         "episodes": 10, "train_steps": 1000, "generalisation_n": 10}  # fmt: skip
+TARGET_POINTS = 10.0
+README = REPO_ROOT / "README.md"
+#: The README block each part writes (outside --quick).
+README_BLOCKS = {"comparison": "imitation", "cost": "imitation-cost"}
+
+
+def all_inputs(part: str) -> list[str]:
+    """Every input of the comparison, the supervised network's first."""
+    inputs = ["state", "true", f"simulated:{part}/supervised-edge"]
+    inputs += [f"don:{part}/{network}" for network in NETWORKS]
+    return inputs + ["rgbd", f"descriptors:{part}/supervised-edge"]
+
+
+def cost(part: str, inputs: list[str], episodes: int, work: Path) -> str:
+    """Markdown: the wall time of an env step per input (an untrained policy's episodes, which run to the limit)."""
+    path = record_demonstrations(work / "cost.hdf5", part, "lift", 1, seed=0, kinds=inputs, progress=True)
+    demos = read_demonstrations(path)
+    lines = ["| input | ms / step (wall) | steps timed | other processes' load (cores) |", "|---|---|---|---|"]
+    for kind in inputs:
+        policy = train_policy(kind, demos, steps=1)
+        with OtherProcessLoad() as load:
+            evaluation = evaluate_policy(policy, kind, part, "lift", episodes, seed=DEVELOPMENT_EVAL_SEED)
+        lines.append(f"| {kind} | {1000 * evaluation.seconds_per_step:.1f} | {evaluation.steps} | {load.describe()} |")
+    settings = RecordSettings()
+    return "\n".join(
+        [
+            f'Part `{part}`, lift, `control="ee"`, D435 sensor model; rgbd at {settings.rgbd_size[0]}x'
+            f"{settings.rgbd_size[1]}; DON keypoints at {settings.don_size[0]}x{settings.don_size[1]} in a "
+            f"{settings.window_px}-pixel window; descriptor images from the whole {settings.don_size[0]}x"
+            f"{settings.don_size[1]} frame, area-averaged to {settings.rgbd_size[0]}x{settings.rgbd_size[1]}. "
+            f"A step: the observation (rendering, sensor model, networks), the features and the policy's forward "
+            f"pass, and the physics; {episodes} episode(s) of an untrained policy per input, "
+            f"`reset(seed={DEVELOPMENT_EVAL_SEED} + i)`; torch threads {torch.get_num_threads()}.",
+            "",
+            *lines,
+        ]
+    )
+
+
+def comparison(config: ImitationConfig, work: Path, quick: bool) -> str:
+    result = run_imitation(config, work, progress=True)
+    figure = FIGURES / "imitation.png"
+    if not quick:
+        plot_success_against_demonstrations(
+            result.rates(), figure, title=f"behaviour cloning, {config.part} {config.goal}"
+        )
+    lines = [
+        f"Part `{config.part}`, {config.goal}; demonstrations of the Markov expert with DART noise "
+        f"{config.action_noise} on its motion, seeds from {config.seed}; behaviour cloning {config.train_steps} "
+        f"gradient steps per policy, one policy class (an MLP over 2 steps of features; images through a "
+        f"spatial-softmax encoder); success on {config.episodes} episodes `reset(seed={config.eval_seed} + i)` with "
+        f"95% Wilson intervals. Generalisation columns at N = {config.generalisation_n}: the same policies with "
+        f'`background="random"`, and the recipe on the shaft (its demonstrations, its networks). ms / step: the '
+        f"wall time of an evaluation step with the input.",
+        "",
+        result.table(),
+    ]
+    state, don = result.wins.get("state", {}), result.wins.get(f"don:{config.part}/supervised-edge", {})
+    if 50 in state and 50 in don:
+        gap = 100.0 * (state[50] - don[50]) / config.episodes
+        verdict = "met" if gap <= TARGET_POINTS else "NOT met"
+        lines += ["", f"Target: supervised DON keypoints at N = 50 within {TARGET_POINTS:.0f} points of true state: "
+                      f"{gap:.0f} points, {verdict}."]  # fmt: skip
+    if not quick:
+        lines += ["", f"![success against demonstrations]({figure.relative_to(REPO_ROOT)})"]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--parts", nargs="+", choices=("comparison", "cost"), default=["comparison", "cost"])
+    parser.add_argument("--part", default="toolcap", choices=("toolcap", "shaft"))
+    parser.add_argument("--quick", action="store_true", help="the CLI's --quick comparison, a short cost; no record")
+    parser.add_argument("--split", choices=("test", "dev"), default="test", help="evaluation episodes")
+    parser.add_argument("--work", default=None, help="keep the demonstrations here (default: a temporary folder)")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    if not args.quick:
+        require_blocks(README, [README_BLOCKS[part] for part in args.parts])
+    eval_seed = DEVELOPMENT_EVAL_SEED if args.split == "dev" else EVAL_SEED
+    with tempfile.TemporaryDirectory() as temp:
+        work = Path(args.work or temp)
+        work.mkdir(parents=True, exist_ok=True)
+        if "cost" in args.parts:
+            inputs = [k.format(part=args.part) for k in QUICK["inputs"]] if args.quick else all_inputs(args.part)
+            body = cost(args.part, inputs, 1, work)
+            print(body)
+            if not args.quick:
+                record_section("imitation-cost", "Imitation inputs: the cost of an env step (bench_imitation)", body)
+                replace_block(README, README_BLOCKS["cost"], body.split("\n\n", 1)[1])
+        if "comparison" in args.parts:
+            if args.quick:
+                preset = {**QUICK, "inputs": tuple(k.format(part=args.part) for k in QUICK["inputs"])}
+                config = ImitationConfig(part=args.part, eval_seed=eval_seed, **preset)
+            else:
+                config = ImitationConfig(
+                    part=args.part, inputs=tuple(all_inputs(args.part)), generalisation_n=50, eval_seed=eval_seed
+                )
+            body = comparison(config, work, args.quick)
+            print(body)
+            if not args.quick:
+                record_section("imitation", "Behaviour cloning at equal demonstrations (bench_imitation)", body)
+                replace_block(README, README_BLOCKS["comparison"], body)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
