@@ -116,3 +116,21 @@ def test_windowed_observations_reach_the_rl_envs():
     simulated.close()
     with pytest.raises(DonGymError, match="batched envs see whole frames"):
         make_batched_sac_vec_env(2, {"window_px": 64})
+
+
+@pytest.mark.filterwarnings("ignore:.*trained on 640x480")
+def test_a_network_read_from_a_reference_frame_takes_the_whole_frame_in_a_windowed_env():
+    """A model whose reference descriptors come from a reference frame (self-supervised) reads them from the
+    windowed env's whole frame, not from a window that need not hold the part: the same as without a window."""
+    kwargs = {"control": "ee", "image_size": (160, 120), "sensor": "ideal"}
+    model = "toolcap/self-supervised"
+    full = KeypointObservation(gym.make("DONToolcapPick-v0", **kwargs), model=model, keep_images=False)
+    windowed = KeypointObservation(
+        gym.make("DONToolcapPick-v0", window_px=64, **kwargs), model=model, keep_images=False
+    )
+    try:
+        assert not windowed.source.reference_from_field
+        np.testing.assert_allclose(windowed.reference_descriptors, full.reference_descriptors, atol=1e-5)
+    finally:
+        full.close()
+        windowed.close()

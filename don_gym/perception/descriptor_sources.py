@@ -528,12 +528,17 @@ class ReferenceFrame:
 
         The env's random generator is put back afterwards, so later unseeded resets go on as
         they would have (no two envs of a vector env become correlated through this). The env
-        must be reset again before stepping.
+        must be reset again before stepping. An env that observes a window of its wrist frame (``window_px``)
+        gives its whole frame: the window is placed where the part was last seen, which at the reference pose
+        need not hold the part.
         """
         base = env.unwrapped
         saved_rng = copy.deepcopy(base.np_random)
         try:
             obs, info = base.reset(seed=seed, options={"pose_id": pose_id})
+            if getattr(base, "window_px", None) is not None:
+                rgb, depth, frame = base.full_frame_images()
+                obs = dict(obs, rgb=rgb, depth=depth, camera_intrinsics=frame.as_array().astype(np.float32))
         finally:
             base.np_random = saved_rng
         return cls({k: np.array(v) for k, v in obs.items()}, dict(info))
