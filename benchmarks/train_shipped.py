@@ -38,6 +38,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import RESULTS_PATH, commit_description, read_section, record_section, section_origin  # noqa: E402
@@ -217,16 +218,7 @@ def main() -> None:
     commit = commit_description()
     for object_name in args.objects:
         data = work / f"data_{object_name}"
-        config = DatasetConfig(
-            object=object_name,
-            scenes=scenes[object_name],
-            frames_per_scene=args.frames,
-            image_size=args.size,
-            sensor="d435",
-            backgrounds=args.backgrounds,
-            distractors=args.distractors,
-            lighting=args.lighting,
-        )
+        config = dataset_config(args, object_name, scenes[object_name])
         check_runs_match(work, object_name, args.methods, scenes[object_name])
         if args.base is None or args.renderer == "tiny":
             start = time.perf_counter()
@@ -285,6 +277,50 @@ def _images_per_second(result: TrainResult) -> str:
     return "n/a" if result.images_per_second is None else f"{result.images_per_second:.1f}"
 
 
+def dataset_config(args: argparse.Namespace, object_name: str, scenes: int, renderer: str = "tiny") -> DatasetConfig:
+    """The recipe's dataset of ``object_name``: ``scenes`` scenes of ``renderer``, the variety of the options."""
+    return DatasetConfig(
+        object=object_name,
+        scenes=scenes,
+        frames_per_scene=args.frames,
+        image_size=args.size,
+        sensor="d435",
+        renderer=renderer,
+        backgrounds=args.backgrounds,
+        distractors=args.distractors,
+        lighting=args.lighting,
+    )
+
+
+def run_config(
+    args: argparse.Namespace,
+    method: str,
+    arch: str,
+    data: Path,
+    run: Path,
+    crop: tuple[int, int],
+    steps: int,
+    **schedule: Any,
+) -> TrainConfig:
+    """The recipe's training run of ``steps`` steps on ``data`` into ``run``; ``schedule``: the stage's lr, decay
+    and init."""
+    return TrainConfig(
+        method=method,
+        data=str(data),
+        out=str(run),
+        steps=steps,
+        arch=arch,
+        batch_size=args.batch_size,
+        seed=0,
+        crop_size=crop,
+        background_crop_probability=args.background_crops,
+        threads=args.threads,
+        workers=args.workers,
+        checkpoint_every=max(1, steps // 4) if args.checkpoint_every is None else args.checkpoint_every,
+        **schedule,
+    )
+
+
 def train_stage_one(
     args: argparse.Namespace,
     work: Path,
@@ -297,24 +333,10 @@ def train_stage_one(
     """Stage 1 (the TinyRenderer recipe) of one network in ``work/run_<object>_<method>``, resumed if there: its
     table row, result and dataset directory."""
     data = work / f"data_{object_name}"
-    result = train(
-        TrainConfig(
-            method=method,
-            data=str(data),
-            out=str(work / f"run_{object_name}_{method}"),
-            steps=args.steps,
-            lr_decay_every=args.lr_decay_every,
-            arch=arch,
-            batch_size=args.batch_size,
-            seed=0,
-            crop_size=crops[object_name],
-            background_crop_probability=args.background_crops,
-            threads=args.threads,
-            workers=args.workers,
-            checkpoint_every=max(1, args.steps // 4) if args.checkpoint_every is None else args.checkpoint_every,
-        ),
-        resume=True,
-    )
+    run = work / f"run_{object_name}_{method}"
+    crop = crops[object_name]
+    config = run_config(args, method, arch, data, run, crop, args.steps, lr_decay_every=args.lr_decay_every)
+    result = train(config, resume=True)
     row = {
         "object": object_name,
         "method": method,
@@ -353,41 +375,17 @@ def fine_tune(
         base = base_result.model_path
     fine_scenes = args.fine_tune_scenes or FINE_TUNE_SCENES[object_name]
     data = work / f"data_{object_name}_{args.renderer}"
-    config = DatasetConfig(
-        object=object_name,
-        scenes=fine_scenes,
-        frames_per_scene=args.frames,
-        image_size=args.size,
-        sensor="d435",
-        renderer=args.renderer,
-        backgrounds=args.backgrounds,
-        distractors=args.distractors,
-        lighting=args.lighting,
-    )
+    config = dataset_config(args, object_name, fine_scenes, args.renderer)
     start = time.perf_counter()
     report = build_dataset(config, data)
     print(f"{object_name} ({args.renderer}): {report.frames_written} new frames in {time.perf_counter() - start:.0f} s")
     steps = args.fine_tune_steps
-    result = train(
-        TrainConfig(
-            method=method,
-            data=str(data),
-            out=str(work / f"run_{object_name}_{method}_{args.renderer}"),
-            steps=steps,
-            lr=FINE_TUNE_LR,
-            lr_decay_every=FINE_TUNE_DECAY_EVERY,
-            arch=arch,
-            batch_size=args.batch_size,
-            seed=0,
-            crop_size=crops[object_name],
-            background_crop_probability=args.background_crops,
-            threads=args.threads,
-            workers=args.workers,
-            checkpoint_every=max(1, steps // 4) if args.checkpoint_every is None else args.checkpoint_every,
-            init_path=str(base),
-        ),
-        resume=True,
-    )
+    run = work / f"run_{object_name}_{method}_{args.renderer}"
+    config = run_config(
+        args, method, arch, data, run, crops[object_name], steps,
+        lr=FINE_TUNE_LR, lr_decay_every=FINE_TUNE_DECAY_EVERY, init_path=str(base),
+    )  # fmt: skip
+    result = train(config, resume=True)
     description = data_description(args.frames, args.backgrounds, args.distractors, args.lighting)
     row = {
         "object": object_name,
