@@ -11,6 +11,7 @@ import torch.nn.functional as F
 
 from don_gym.errors import DonGymError
 from don_gym.learning.losses import (
+    HARD_BACKGROUND_BAND_PX,
     batch_contrastive_loss,
     contrastive_loss_from_correspondences,
     pixelwise_contrastive_loss,
@@ -67,6 +68,46 @@ def test_supervised_l2_normalises_by_pixel_counts() -> None:
     # d/dpred of (pred - t)^2 / count = 2 (pred - t) / count.
     assert pred.grad[0, 0][mask[0]] == pytest.approx(torch.full((7,), -2.0 / 7))
     assert pred.grad[0, 2][~mask[0]] == pytest.approx(torch.full((93,), -1.0 / 93))
+
+
+def test_supervised_l2_hard_background_adds_the_worst_pixels() -> None:
+    # 24x24 image, 4 object pixels, 572 background: one background pixel far from the object with squared error 9.
+    pred = torch.zeros(1, 1, 24, 24, requires_grad=True)
+    target = torch.zeros(1, 1, 24, 24)
+    mask = torch.zeros(1, 24, 24, dtype=torch.bool)
+    mask[0, :2, :2] = True
+    target[0, 0, 20, 20] = 3.0
+    plain = supervised_l2_loss_terms(pred, target, mask)[1].item()
+    assert plain == pytest.approx(9.0 / 572)
+    # f = 0.02 of 576 pixels: the worst 12 (9 and zeros) -> 0.75 added; the plain mean barely sees the outlier.
+    hard = supervised_l2_loss_terms(pred, target, mask, hard_background_fraction=0.02)[1]
+    assert hard.item() == pytest.approx(9.0 / 572 + 0.75)
+    hard.sum().backward()
+    assert pred.grad[0, 0, 20, 20].item() == pytest.approx(-6.0 / 572 - 6.0 / 12)
+    assert pred.grad[0, 0, 15, 15].item() == 0.0
+    # Object pixels never count as background, however bad.
+    target[0, 0, 0, 0] = 100.0
+    assert supervised_l2_loss_terms(pred, target, mask, 0.0, 0.02)[1].item() == pytest.approx(hard.item())
+    # A background pixel within the band around the object is no hard background pixel.
+    target[0, 0, 20, 20] = 0.0
+    target[0, 0, 2 + HARD_BACKGROUND_BAND_PX - 1, 0] = 3.0
+    near = supervised_l2_loss_terms(pred, target, mask, 0.0, 0.02)[1].item()
+    assert near == pytest.approx(9.0 / 572)
+    with pytest.raises(DonGymError, match="hard_background_fraction"):
+        supervised_l2_loss(pred, target, mask, hard_background_fraction=1.0)
+
+
+def test_supervised_l2_hard_object_pixels_weigh_more() -> None:
+    # 20 object pixels, one of them (a mirror-like face the network calls background) with squared error 4.
+    pred = torch.zeros(1, 1, 10, 10)
+    target = torch.zeros(1, 1, 10, 10)
+    mask = torch.zeros(1, 10, 10, dtype=torch.bool)
+    mask[0, :2] = True
+    target[0, 0, 1, 5] = 2.0
+    target[0, 0, 9, 9] = 5.0  # background: never in the object term
+    object_term, background_term = supervised_l2_loss_terms(pred, target, mask, hard_object_fraction=0.01)
+    assert object_term.item() == pytest.approx(4.0 / 20 + 4.0)
+    assert background_term.item() == pytest.approx(25.0 / 80)
 
 
 def test_supervised_l2_rejects_bad_shapes() -> None:

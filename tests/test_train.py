@@ -185,6 +185,9 @@ def test_data_wait_fraction_is_the_share_of_step_time_spent_waiting_for_batches(
         ({"depth_source": "lidar"}, "lidar"),
         ({"pretrained_path": "x.pth"}, "no ImageNet layout"),
         ({"data": "/no/such/dataset"}, "does not exist"),
+        ({"hard_object_fraction": 0.9}, "hard_object_fraction"),
+        ({"hard_background_fraction": -0.1}, "hard_background_fraction"),
+        ({"method": "self-supervised", "hard_object_fraction": 0.1}, "no per-pixel targets"),
     ],
 )
 def test_bad_settings_are_refused_before_anything_is_written(
@@ -227,6 +230,8 @@ def test_train_cli_defaults_are_train_configs() -> None:
     args = build_parser().parse_args(["train", "--method", "supervised", "--data", "d", "--out", "o"])
     assert args.lr_decay_every == TrainConfig.lr_decay_every
     assert args.checkpoint_every == TrainConfig.checkpoint_every
+    assert args.hard_object == TrainConfig.hard_object_fraction
+    assert args.hard_background == TrainConfig.hard_background_fraction
 
 
 def test_part_layout_identity_on_a_dataset_of_one_part_is_one_line(tiny_dataset: str, tmp_path: Path, capsys) -> None:

@@ -69,6 +69,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="train on object-centred random crops WIDTHxHEIGHT ('none': whole frames); inference uses whole frames",
     )
     parser.add_argument(
+        "--hard-object",
+        type=float,
+        default=0.0,
+        metavar="FRACTION",
+        help="supervised methods: also penalise each crop's worst FRACTION of part pixels (e.g. 0.1), those whose "
+        "descriptors fall towards the background's where the part looks like its surroundings (0: the plain l2 loss)",
+    )
+    parser.add_argument(
+        "--hard-background",
+        type=float,
+        default=0.0,
+        metavar="FRACTION",
+        help="supervised methods: also penalise each crop's worst FRACTION of background pixels (e.g. 0.01), "
+        "those whose descriptors drift towards the part's and take matches off it (0: the plain l2 loss)",
+    )
+    parser.add_argument(
         "--background-crops",
         type=float,
         default=0.1,
@@ -152,6 +168,8 @@ def run(args: argparse.Namespace) -> int:
         device=args.device,
         crop_size=_crop(args.crop),
         background_crop_probability=args.background_crops,
+        hard_object_fraction=args.hard_object,
+        hard_background_fraction=args.hard_background,
         augment=asdict(AugmentConfig(pattern_probability=args.pattern_backgrounds)),
         threads=args.threads,
         workers=args.workers,

@@ -7,6 +7,7 @@ Pixel indices are ``(u, v)`` = (column, row), as everywhere in don_gym.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -17,6 +18,7 @@ from don_gym.errors import DonGymError
 from don_gym.learning.methods import METHODS, SUPERVISED_METHODS, is_supervised, validate_method
 
 __all__ = [
+    "HARD_BACKGROUND_BAND_PX",
     "METHODS",
     "SUPERVISED_METHODS",
     "is_supervised",
@@ -33,8 +35,30 @@ DEFAULT_OBJECT_MARGIN = 0.5
 DEFAULT_BACKGROUND_MARGIN = 2.5
 
 
+#: Background pixels within this many pixels of the object (the network's output stride) are left out of the hard
+#: background pixels: a match there is still near the part, and pushing the blend at the silhouette towards the
+#: background only moves the part's own edge descriptors towards it.
+HARD_BACKGROUND_BAND_PX = 8
+
+
+def _hardest_mean(
+    squared_error: torch.Tensor, on_region: torch.Tensor, count: torch.Tensor, fraction: float
+) -> torch.Tensor:
+    """Per image ``(B,)``: the mean of the largest ``ceil(fraction x H x W)`` squared errors inside the region."""
+    error = (squared_error * on_region).flatten(1)
+    hardest = math.ceil(fraction * error.shape[1])
+    # Pixels outside the region count 0; where the region has fewer pixels than ``hardest`` the top-k includes
+    # zeros, so divide by the region's pixels among them.
+    taken = torch.minimum(count, torch.full_like(count, float(hardest)))
+    return error.topk(hardest, dim=1).values.sum(dim=1) / taken.clamp(min=1)
+
+
 def supervised_l2_loss_terms(
-    pred: torch.Tensor, target: torch.Tensor, object_mask: torch.Tensor
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    object_mask: torch.Tensor,
+    hard_object_fraction: float = 0.0,
+    hard_background_fraction: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-image object and background terms of the supervised l2 loss, ``(B,)`` each.
 
@@ -42,6 +66,13 @@ def supervised_l2_loss_terms(
     The object term is the squared error summed over descriptor channels and object pixels,
     divided by the number of object pixels; likewise for the background. An image without
     object pixels (or without background pixels) gets 0 for that term.
+
+    ``hard_object_fraction`` and ``hard_background_fraction``, each in [0, 1): with f > 0 the term also adds the
+    mean squared error of the image's worst ``ceil(f x H x W)`` pixels of its region (for the background: those
+    more than :data:`HARD_BACKGROUND_BAND_PX` from the object). A plain mean hardly sees a
+    few pixels gone wrong: part pixels whose descriptors collapse to the background's (where steel mirrors the
+    table) or background pixels that drift towards the part's, yet each of them can take a match anywhere in
+    the frame.
     """
     if pred.ndim != 4 or pred.shape != target.shape:
         raise DonGymError(
@@ -55,24 +86,46 @@ def supervised_l2_loss_terms(
         )
     if object_mask.dtype != torch.bool:
         raise DonGymError(f"supervised_l2_loss: object_mask must be bool, got {object_mask.dtype}")
+    fractions = {"hard_object_fraction": hard_object_fraction, "hard_background_fraction": hard_background_fraction}
+    for name, fraction in fractions.items():
+        if not 0.0 <= fraction < 1.0:
+            raise DonGymError(f"supervised_l2_loss: {name} must be in [0, 1), got {fraction}")
     # float32 even under autocast: the sums run over ~10^5 pixels.
     squared_error = (pred.float() - target.float()).pow(2).sum(dim=1)
     on_object = object_mask.to(squared_error.dtype)
+    on_background = 1.0 - on_object
     object_count = on_object.sum(dim=(1, 2))
     background_count = on_object[0].numel() - object_count
     object_term = (squared_error * on_object).sum(dim=(1, 2)) / object_count.clamp(min=1)
-    background_term = (squared_error * (1.0 - on_object)).sum(dim=(1, 2)) / background_count.clamp(min=1)
+    background_term = (squared_error * on_background).sum(dim=(1, 2)) / background_count.clamp(min=1)
+    if hard_object_fraction > 0.0:
+        object_term = object_term + _hardest_mean(squared_error, on_object, object_count, hard_object_fraction)
+    if hard_background_fraction > 0.0:
+        band = HARD_BACKGROUND_BAND_PX
+        near_object = torch.nn.functional.max_pool2d(on_object[:, None], 2 * band + 1, stride=1, padding=band)[:, 0]
+        far_background = on_background * (1.0 - near_object)
+        background_term = background_term + _hardest_mean(
+            squared_error, far_background, far_background.sum(dim=(1, 2)), hard_background_fraction
+        )
     return object_term, background_term
 
 
-def supervised_l2_loss(pred: torch.Tensor, target: torch.Tensor, object_mask: torch.Tensor) -> torch.Tensor:
+def supervised_l2_loss(
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    object_mask: torch.Tensor,
+    hard_object_fraction: float = 0.0,
+    hard_background_fraction: float = 0.0,
+) -> torch.Tensor:
     """The paper's l2 loss (eq. l2loss), averaged over the batch: a scalar tensor.
 
     Per image, the object term plus the background term, each normalised by its pixel count so
     that a small object is not drowned by its background. See :func:`supervised_l2_loss_terms`
     for shapes; use it to log the two terms.
     """
-    object_term, background_term = supervised_l2_loss_terms(pred, target, object_mask)
+    object_term, background_term = supervised_l2_loss_terms(
+        pred, target, object_mask, hard_object_fraction, hard_background_fraction
+    )
     return (object_term + background_term).mean()
 
 

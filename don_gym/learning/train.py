@@ -129,7 +129,10 @@ class TrainConfig:
     ``"identity"`` every part's whole field plus one output channel for part identity
     (:func:`~don_gym.descriptors.multi_part.build_part_space`; not with ``supervised-mask``).
     ``init_path`` fine-tunes: the run starts from the weights of a don_gym checkpoint of the same method, arch,
-    part and descriptor space (e.g. a shipped network, to adapt it to new data) instead of random ones."""
+    part and descriptor space (e.g. a shipped network, to adapt it to new data) instead of random ones.
+    ``hard_object_fraction`` and ``hard_background_fraction`` (supervised methods) add to the loss's object and
+    background terms the mean error of each crop's worst fraction of pixels of that region
+    (:func:`~don_gym.learning.losses.supervised_l2_loss_terms`)."""
 
     method: str
     data: str
@@ -157,6 +160,8 @@ class TrainConfig:
     backend: str = "auto"
     part_layout: str = "auto"
     init_path: str | None = None
+    hard_object_fraction: float = 0.0
+    hard_background_fraction: float = 0.0
 
     def learning_rate(self) -> float:
         if self.lr is not None:
@@ -210,6 +215,8 @@ def validate_config(config: TrainConfig) -> None:
     _real(config, "weight_decay", 0.0, 1.0)
     _real(config, "lr_decay", 0.0, 1.0, low_open=True)
     _real(config, "background_crop_probability", 0.0, 1.0)
+    _real(config, "hard_object_fraction", 0.0, 0.5)
+    _real(config, "hard_background_fraction", 0.0, 0.5)
     _real(config, "object_margin", 0.0, 1e6)
     _real(config, "background_margin", 0.0, 1e6)
     if config.depth_source not in DEPTH_SOURCES:
@@ -234,6 +241,12 @@ def validate_config(config: TrainConfig) -> None:
             f"part_layout {config.part_layout!r} is for the supervised methods; {config.method} learns a descriptor "
             "space of its own (use part_layout 'auto')"
         )
+    for name in ("hard_object_fraction", "hard_background_fraction"):
+        if getattr(config, name) > 0 and not is_supervised(config.method):
+            raise DonGymError(
+                f"{name} {getattr(config, name)} is a term of the supervised loss; {config.method} has no per-pixel "
+                "targets (use 0)"
+            )
     if config.part_layout == IDENTITY_LAYOUT and config.method == "supervised-mask":
         raise DonGymError(
             "part_layout 'identity' does not support supervised-mask, whose mask channel would replace a "
@@ -413,6 +426,8 @@ def checkpoint_metadata(
             "batch_size": config.batch_size,
             "crop_size": list(config.crop_size) if config.crop_size else None,
             "background_crop_probability": config.background_crop_probability,
+            "hard_object_fraction": config.hard_object_fraction,
+            "hard_background_fraction": config.hard_background_fraction,
             "dataset_scenes": int(dataset_info["scenes"]),
             "dataset_frames_per_scene": int(dataset_info["frames_per_scene"]),
             "dataset_seed": int(dataset_info["seed"]),
@@ -823,7 +838,7 @@ def _train(
     )  # fmt: skip
     loader = step_loader(batches, session.start_step, config.workers, pin_memory=device.type == "cuda")
     images_per_step = config.batch_size * (1 if session.supervised else 2)
-    step_loss = _supervised_step_loss if session.supervised else _contrastive_step_loss(config)
+    step_loss = _supervised_step_loss(config) if session.supervised else _contrastive_step_loss(config)
     net.train()
     data_wait = 0.0
     session.start_time = steady_from = time.perf_counter()
@@ -869,15 +884,22 @@ def _channels_last(rgb: torch.Tensor, device: torch.device) -> torch.Tensor:
     return rgb.contiguous(memory_format=torch.channels_last) if device.type == "cuda" else rgb
 
 
-def _supervised_step_loss(
-    net: torch.nn.Module, batch: dict[str, Any], device: torch.device
-) -> tuple[torch.Tensor, dict[str, float]]:
-    pred = net(_channels_last(batch["rgb"], device))
-    # The loss sums ~10^5 pixels: float32 even under autocast.
-    loss = supervised_l2_loss(
-        pred.float(), _to_device(batch["target"], device), _to_device(batch["object_mask"], device)
-    )
-    return loss, {}
+def _supervised_step_loss(config: TrainConfig) -> Callable[..., tuple[torch.Tensor, dict[str, float]]]:
+    def step_loss(
+        net: torch.nn.Module, batch: dict[str, Any], device: torch.device
+    ) -> tuple[torch.Tensor, dict[str, float]]:
+        pred = net(_channels_last(batch["rgb"], device))
+        # The loss sums ~10^5 pixels: float32 even under autocast.
+        loss = supervised_l2_loss(
+            pred.float(),
+            _to_device(batch["target"], device),
+            _to_device(batch["object_mask"], device),
+            config.hard_object_fraction,
+            config.hard_background_fraction,
+        )
+        return loss, {}
+
+    return step_loss
 
 
 def _contrastive_step_loss(config: TrainConfig) -> Callable[..., tuple[torch.Tensor, dict[str, float]]]:
