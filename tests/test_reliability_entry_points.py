@@ -347,3 +347,18 @@ def test_overwrite_never_deletes_a_directory_that_is_no_dataset(scene: str, tmp_
                  "--out", str(folder)])  # fmt: skip
     _one_line_error(code, capsys.readouterr().err, str(folder), "not a don_gym dataset", "--overwrite")
     assert snapshot(folder) == before and sorted(p.name for p in folder.iterdir()) == ["notes.txt", "thesis"]
+
+
+def test_parsing_the_command_line_imports_no_pipeline_stage() -> None:
+    """`don-gym --help` and argument errors answer at once: building the parser imports neither the dataset
+    builder, OpenCV, torch nor PyBullet, and build-dataset's renderer choices are DatasetConfig's."""
+    code = (
+        "import sys; from don_gym.cli import build_parser; build_parser(); "
+        "print([m for m in ('don_gym.data.build', 'cv2', 'torch', 'pybullet') if m in sys.modules])"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]", out
+    from don_gym.cli.build_dataset import RENDERER_CHOICES
+    from don_gym.data.build import DATASET_RENDERERS
+
+    assert RENDERER_CHOICES == DATASET_RENDERERS

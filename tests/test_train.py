@@ -24,7 +24,7 @@ from don_gym.cli import main as cli_main
 from don_gym.data.build import DatasetConfig, build_dataset
 from don_gym.errors import CheckpointError, DonGymError
 from don_gym.learning.augment import AugmentConfig
-from don_gym.learning.checkpoints import load_checkpoint
+from don_gym.learning.checkpoints import load_checkpoint, read_checkpoint_metadata
 from don_gym.learning.methods import SUPERVISED_TARGET_VARIANT
 from don_gym.learning.model import DenseObjectNet
 from don_gym.learning.torch_data import CorrespondencePairs, StepBatches, SupervisedFrames, step_loader
@@ -221,6 +221,26 @@ def test_lr_decay_every_from_the_cli(tiny_dataset: str, tmp_path: Path, capsys) 
     assert cli_main([*argv, "--out", str(tmp_path / "bad"), "--steps", "1", "--lr-decay-every", "0"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "lr_decay_every" in err and not (tmp_path / "bad").exists(), err
+
+
+def test_hard_pixel_fractions_from_the_cli(tiny_dataset: str, tmp_path: Path, capsys) -> None:
+    """--hard-object / --hard-background reach the run (its config.json and the checkpoint's metadata) and change
+    what a step computes; a fraction out of range is one line with nothing written."""
+    argv = ["train", "--method", "supervised", "--data", tiny_dataset, "--batch-size", "1", "--crop", "32x32",
+            "--threads", "1", "--workers", "0", "--device", "cpu", "--steps", "2"]  # fmt: skip
+    assert cli_main([*argv, "--out", str(tmp_path / "plain")]) == 0
+    hard = [*argv, "--out", str(tmp_path / "hard"), "--hard-object", "0.1", "--hard-background", "0.01"]
+    assert cli_main(hard) == 0
+    saved = json.loads((tmp_path / "hard" / "config.json").read_text())
+    assert (saved["hard_object_fraction"], saved["hard_background_fraction"]) == (0.1, 0.01)
+    extra = read_checkpoint_metadata(tmp_path / "hard" / "model.safetensors").extra
+    assert (extra["hard_object_fraction"], extra["hard_background_fraction"]) == (0.1, 0.01)
+    # Same seed and batches: the first step's loss differs only by the added terms, which are positive.
+    assert float(_columns(tmp_path / "hard")["loss"][0]) > float(_columns(tmp_path / "plain")["loss"][0])
+    capsys.readouterr()
+    assert cli_main([*argv, "--out", str(tmp_path / "bad"), "--hard-object", "0.7"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "hard_object_fraction" in err and not (tmp_path / "bad").exists(), err
 
 
 def test_train_cli_defaults_are_train_configs() -> None:

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from don_gym.data.build import DATASET_RENDERERS
+# DatasetConfig's renderers (don_gym.data.build.DATASET_RENDERERS, which a test keeps equal), listed here so that
+# parsing the command line does not import the dataset builder.
+RENDERER_CHOICES = ("tiny", "egl", "pbr", "mixed")
 
 #: The pile of a bin build without --parts.
 DEFAULT_PARTS = "toolcap:3,shaft:2"
@@ -60,7 +62,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--renderer",
         default="tiny",
-        choices=list(DATASET_RENDERERS),
+        choices=list(RENDERER_CHOICES),
         help="renderer of the RGB images: tiny (TinyRenderer, default), egl (OpenGL), pbr (path-traced, the pbr "
         "extra), mixed (odd-numbered scenes pbr, the others tiny: training data for networks that must hold on both)",
     )
