@@ -7,12 +7,17 @@ Parts (``--only``, repeatable; all by default):
 - ``ppo``: PPO on ``control="grasp"`` with residual actions in the keypoints' axis frame, from DON keypoints,
   and from a model of the DON (``SimulatedKeypoints``, no rendering) evaluated with the real DON (transfer).
   Baselines on the same held-out episodes: random, the scripted ``AxisGraspAgent``, the true-pose grasp.
-- ``images``: PPO on ``control="grasp"`` from the DON's descriptor images (uint8, SB3's CNN), world actions.
 - ``sac``: SAC with HER on ``control="ee"`` (goal ``--sac-goal``: the ``lift`` sub-task by default, the full
   ``place`` task being beyond this budget), learning curves from simulated keypoints, DON keypoints and the
   true keypoints side by side; the simulated-keypoint policy is also evaluated with the DON (transfer).
   Training episodes start in shares ``--sac-hand-starts`` with the hand at or on the part (``HandStarts``,
   the HER paper's device); every policy is evaluated from the task's start and with the part in the hand.
+
+PPO from descriptor images with actions in the whole action box is no longer a part: it learned nothing in 1024
+episodes (0%, random actions hit the grasp tolerance about once in 10^4), and pixel PPO in the field needs about
+10^7 env steps with a shaped reward, some ten days of env steps alone at the ~85 ms a descriptor-image step costs
+on 2 cores (RESULTS.md, "imitation-cost"). Policies from descriptor images are compared where demonstrations make
+them learnable: ``benchmarks/bench_imitation.py`` (README, "Policy learning").
 
 Every policy is evaluated on the same held-out seeds (``reset(seed=EVAL_SEED + i)``) with 95 % Wilson
 intervals. Every training run writes its learning curve (CSV, PNG), configuration and seeds (JSON) and
@@ -20,7 +25,7 @@ periodic saves into ``--out`` (``runs/rl`` by default, a temporary directory wit
 ``--resume`` continues interrupted runs there. The training runs of all parts run ``--jobs`` at a time (one
 process each, one torch thread each: the same runs as one after the other; by default as many as there are
 CPUs), then each part evaluates. Figures go to ``benchmarks/figures/``, results to one section of
-``benchmarks/RESULTS.md`` per part that ran (``rl-throughput``, ``rl-ppo``, ``rl-images``, ``rl-sac``; not with
+``benchmarks/RESULTS.md`` per part that ran (``rl-throughput``, ``rl-ppo``, ``rl-sac``; not with
 ``--quick``); a part run with settings other than the defaults (e.g. the longer recipes below) records into
 ``rl-<part>-custom`` and ``<figure>_custom.png`` instead, beside the default run's figures.
 
@@ -45,7 +50,7 @@ Longer recipe for a GPU machine (16 cores, one GPU: the DON on the GPU on 8 envs
 physics in 8 subprocesses, a gradient step per env step)::
 
     python benchmarks/bench_rl.py --device cuda --vectorize batched-async --sac-envs 8 \\
-        --sac-steps 1000000 --sac-don-steps 300000 --sac-goal place --ppo-steps 4096 --images-steps 20000
+        --sac-steps 1000000 --sac-don-steps 300000 --sac-goal place --ppo-steps 4096
 """
 
 from __future__ import annotations
@@ -85,7 +90,7 @@ EVAL_SEED = 100_000
 #: Preferred keypoint model: the shipped supervised network; the oracle until it exists.
 PREFERRED_MODEL = "toolcap/supervised-edge"
 ORACLE_IMAGE_SIZE = (160, 120)  # no network to match: small images keep the oracle runs cheap
-PARTS = ("throughput", "ppo", "images", "sac")
+PARTS = ("throughput", "ppo", "sac")
 #: The training stage's progress bar: runs done (fractions for the running ones' saved steps), elapsed time.
 RUNS_BAR = "{desc}: {n:.1f}/{total} runs |{bar}| [{elapsed}{postfix}]"
 #: SAC keypoint sources, in the order of the curves.
@@ -100,7 +105,6 @@ DEFAULT_HAND_STARTS = {"in_hand": 0.5, "at_part": 0.25}
 PART_TITLES = {
     "throughput": "RL: batched DON inference (bench_rl.py)",
     "ppo": "RL: PPO from DON keypoints (bench_rl.py)",
-    "images": "RL: PPO from descriptor images (bench_rl.py)",
     "sac": "RL: SAC with HER (bench_rl.py)",
 }
 TABLE_HEAD = (
@@ -153,7 +157,7 @@ class TrainingRun:
     @property
     def renders(self) -> bool:
         """Whether its envs render wrist images and run the DON: the slow runs, started first."""
-        return self.algorithm == "ppo-images" or self.kwargs.get("env_kwargs", {}).get("keypoints") == "don"
+        return self.kwargs.get("env_kwargs", {}).get("keypoints") == "don"
 
 
 def _train(args: argparse.Namespace, run: TrainingRun, progress: bool = True) -> rl.RLTrainResult:
@@ -429,62 +433,6 @@ def run_ppo(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
     return "\n".join(body), {f"ppo/{name}": _summary(r) for name, r in results.items()}
 
 
-def _images_env_kwargs(args: argparse.Namespace, keypoint_model: str) -> dict[str, Any]:
-    return {
-        "keypoint_model": keypoint_model,
-        "image_size": args.image_size,
-        "cnn_size": tuple(args.cnn_size),
-        "sensor": args.sensor,
-        "reward_type": "dense",
-    }
-
-
-def images_runs(args: argparse.Namespace, keypoint_model: str) -> list[TrainingRun]:
-    """The images part's run: PPO from descriptor images."""
-    kwargs = {
-        "n_envs": args.ppo_envs,
-        "env_kwargs": _images_env_kwargs(args, keypoint_model),
-        "algo_kwargs": _ppo_rollout(args, "ppo-images"),
-    }
-    return [TrainingRun("ppo_images", "ppo-images", args.images_steps, kwargs)]
-
-
-def run_images(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[str, Any]]:
-    """PPO from descriptor images (uint8, SB3's NatureCNN), actions spanning the whole action box."""
-    env_kwargs = _images_env_kwargs(args, keypoint_model)
-    (trained,) = (_train(args, run) for run in images_runs(args, keypoint_model))
-    extractor = type(trained.model.policy.features_extractor.extractors["descriptors"]).__name__
-    env = rl.make_image_env(**env_kwargs)
-    n = args.ppo_eval_episodes
-    results = {
-        "PPO, descriptor images": rl.evaluate(env, rl.model_policy(trained.model), n, EVAL_SEED, "eval PPO images"),
-        "random, whole action box": rl.evaluate(
-            env, rl.random_policy(env.action_space, args.seed), n, EVAL_SEED, "eval random (box)"
-        ),
-    }
-    env.close()
-    window = max(10, min(50, len(trained.curve.successes) // 5))
-    figure = _figure(args, "images", "rl_ppo_images")
-    plot_learning_curve(
-        [_curve_entry("PPO, descriptor images (stochastic policy)", trained.curve, window)],
-        figure,
-        window,
-        f"PPO, control='grasp', descriptor images of {keypoint_model}",
-        reference_lines=[(f"eval: {name}", r.success_rate, r.mean_return) for name, r in results.items()],
-    )
-    body = [
-        f"**PPO from descriptor images** (beside the keypoint baseline): {args.images_steps} episodes, "
-        f"{trained.run_wall_s / 60:.1f} min; the `{keypoint_model}` descriptor image resized to "
-        f"{args.cnn_size[0]}x{args.cnn_size[1]}, clipped to [0, 1] and quantised to uint8 (`DescriptorImage`), "
-        f"through SB3's `{extractor}`; actions span the env's action box (the policy has to find the part). "
-        f"Run: `{_shown(args.out / 'ppo_images')}`. Learning curve: `{_shown(figure)}`.",
-        "",
-        TABLE_HEAD,
-        *[_row(name, result) for name, result in results.items()],
-    ]
-    return "\n".join(body), {f"images/{name}": _summary(r) for name, r in results.items()}
-
-
 # ------------------------------------------------------------------------------------------ SAC
 def _sac_env_kwargs(args: argparse.Namespace, keypoint_model: str) -> dict[str, Any]:
     return {
@@ -662,13 +610,12 @@ def _curve_end_row(source: str, end: dict[str, Any], baseline: rl.EvaluationResu
 
 # ----------------------------------------------------------------------------------------- main
 #: The training runs of each part that has any.
-PART_RUNS = {"ppo": ppo_runs, "images": images_runs, "sac": sac_runs}
+PART_RUNS = {"ppo": ppo_runs, "sac": sac_runs}
 #: The options that shape each part's figures: a run with any of them off its default records its part in a
 #: section of its own (``rl-<part>-custom``), beside the default run's.
 PART_SETTINGS = {
     "throughput": ("throughput_envs", "throughput_steps", "device", "vectorize"),
     "ppo": ("ppo_envs", "ppo_steps", "ppo_rollout", "ppo_eval_episodes"),
-    "images": ("ppo_envs", "ppo_rollout", "images_steps", "cnn_size", "ppo_eval_episodes"),
     "sac": (
         "sac_goal", "sac_envs", "sac_steps", "sac_don_steps", "sac_max_steps", "sac_learning_starts",
         "sac_eval_episodes", "sac_hand_starts", "vectorize",
@@ -734,8 +681,6 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--ppo-steps", type=positive_int, default=1024, help="grasp episodes (one env step each)")
     parser.add_argument("--ppo-rollout", type=positive_int, default=32, help="env steps per PPO update, all envs")
     parser.add_argument("--ppo-eval-episodes", type=positive_int, default=50)
-    parser.add_argument("--images-steps", type=positive_int, default=1024)
-    parser.add_argument("--cnn-size", type=positive_int, nargs=2, default=[80, 60], metavar=("W", "H"))
     parser.add_argument("--sac-goal", choices=("lift", "place"), default="lift")
     parser.add_argument("--sac-envs", type=positive_int, default=1)
     parser.add_argument(
@@ -768,7 +713,7 @@ def main(argv: list[str] | None = None) -> int:
     args.custom_parts = {part for part in parts if _custom_settings(parser, args, part)}
     if args.quick:
         args.throughput_envs, args.throughput_steps = [1, 2], 2
-        args.ppo_envs, args.ppo_rollout, args.ppo_steps, args.ppo_eval_episodes, args.images_steps = 1, 8, 8, 2, 8
+        args.ppo_envs, args.ppo_rollout, args.ppo_steps, args.ppo_eval_episodes = 1, 8, 8, 2
         args.sac_steps, args.sac_don_steps, args.sac_max_steps = 100, 20, 10
         args.sac_learning_starts, args.sac_eval_episodes = 20, 2
     records = not args.quick
@@ -801,7 +746,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"{summary_path}: not a readable summary ({exc}); move it away or pass another --out")
 
     start = time.perf_counter()
-    runners = {"throughput": run_throughput, "ppo": run_ppo, "images": run_images, "sac": run_sac}
+    runners = {"throughput": run_throughput, "ppo": run_ppo, "sac": run_sac}
     training = [run for part in parts if part in PART_RUNS for run in PART_RUNS[part](args, keypoint_model)]
     jobs = min(args.jobs or len(os.sched_getaffinity(0)), max(len(training), 1))
     sections, summary = {}, {"keypoint_model": keypoint_model, "eval_seeds": [EVAL_SEED], "seed": args.seed}
@@ -845,7 +790,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     intro = (
         "stable-baselines3 baselines on the toolcap; the policies see the part only through the two axis-end "
-        f"keypoints of `{keypoint_model}` (or its descriptor images).{oracle_note} Success = "
+        f"keypoints of `{keypoint_model}`.{oracle_note} Success = "
         "`info['is_success']` (grasp_and_place, or the lift goal) at the end of an episode, 95 % Wilson intervals."
     )
     print(intro + "\n\n" + "\n\n".join(sections.values()))
