@@ -86,10 +86,11 @@ BACKGROUND_CROPS = 0.5
 # inside the silhouette into matches off the part (p99 of the shaft's 3D error 246 mm with resnet-lite); the
 # decoder of resnet-lite-fine resolves the silhouette at stride 2.
 ARCH = {"supervised-edge": "resnet-lite", "supervised-mask": "resnet-lite-fine", "self-supervised": "resnet-lite"}
-# Stage 2 (issue 56): 128 scenes for both parts (with "mixed", 64 path-traced and 64 TinyRenderer): the toolcap's
-# stage 1 saw 64 scenes; the shaft's saw 256, but a network that already tells its ends apart only has to adapt to
-# the new look, and path-traced frames cost ~2.6 s each on 2 cores.
-FINE_TUNE_SCENES = {"toolcap": 128, "shaft": 128}
+# Stage 2 (issue 56), with "mixed" half path-traced and half TinyRenderer: 256 scenes for the toolcap, whose
+# supervised candidates on 128 with the hard-pixel terms kept 0.6-0.9% of their matches on the path-traced
+# development scenes more than 100 mm off, and 0.4-0.5% on 256 (docs/background.md, "Steel that looks like steel");
+# 128 for the shaft, whose stage 1 saw 256 scenes (path-traced frames cost ~2.6 s each on 2 cores).
+FINE_TUNE_SCENES = {"toolcap": 256, "shaft": 128}
 # A sixth of stage 1's steps, at a third of its initial learning rate, decayed x0.9 every 300 steps: the network
 # adapts to the new look without starting over (docs/background.md, "Training data").
 FINE_TUNE_STEPS = 3000
