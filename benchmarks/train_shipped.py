@@ -227,13 +227,13 @@ def main() -> None:
     scenes = {name: SCENES[name] if args.scenes is None else args.scenes for name in args.objects}
     commit = commit_description()
     for object_name in args.objects:
-        data = work / f"data_{object_name}"
-        config = dataset_config(args, object_name, scenes[object_name])
         check_runs_match(work, object_name, args.methods, scenes[object_name])
         if args.base is None or args.renderer == "tiny":
-            start = time.perf_counter()
-            report = build_dataset(config, data)
-            print(f"{object_name}: dataset {report.frames_written} new frames in {time.perf_counter() - start:.0f} s")
+            config = dataset_config(args, object_name, scenes[object_name])
+            build_timed(config, work / f"data_{object_name}", object_name)
+        if args.renderer != "tiny":
+            fine_scenes, fine_data = stage_two_data(args, work, object_name)
+            build_timed(dataset_config(args, object_name, fine_scenes, args.renderer), fine_data, object_name)
         for method in args.methods:
             if args.renderer == "tiny":
                 row, result, trained_on = train_stage_one(args, work, object_name, method, archs[method], crops, scenes)
@@ -300,6 +300,19 @@ def dataset_config(args: argparse.Namespace, object_name: str, scenes: int, rend
         distractors=args.distractors,
         lighting=args.lighting,
     )
+
+
+def build_timed(config: DatasetConfig, data: Path, object_name: str) -> None:
+    """Build (or finish) the recipe's dataset ``config`` in ``data``, saying how many frames that took how long."""
+    start = time.perf_counter()
+    report = build_dataset(config, data)
+    elapsed = time.perf_counter() - start
+    print(f"{object_name}: {config.renderer} dataset, {report.frames_written} new frames in {elapsed:.0f} s")
+
+
+def stage_two_data(args: argparse.Namespace, work: Path, object_name: str) -> tuple[int, Path]:
+    """Stage 2's scenes of ``object_name`` and its dataset directory ``work/data_<object>_<renderer>``."""
+    return args.fine_tune_scenes or FINE_TUNE_SCENES[object_name], work / f"data_{object_name}_{args.renderer}"
 
 
 def run_config(
@@ -374,7 +387,8 @@ def fine_tune(
     scenes: dict[str, int],
 ) -> tuple[dict[str, str], TrainResult, Path]:
     """Stage 2 of one network: stage 1's (``--base``'s, or trained here) fine-tuned on a dataset of ``--renderer``
-    in ``work/run_<object>_<method>_<renderer>``, resumed if there: its table row, result and dataset directory."""
+    in ``work/run_<object>_<method>_<renderer>``, resumed if there (its dataset built already: :func:`stage_two_data`):
+    its table row, result and dataset directory."""
     if args.base is not None:
         base = Path(args.base) / object_name / f"{method}.safetensors"
         if not base.is_file():
@@ -383,12 +397,7 @@ def fine_tune(
     else:
         base_row, base_result, _ = train_stage_one(args, work, object_name, method, arch, crops, scenes)
         base = base_result.model_path
-    fine_scenes = args.fine_tune_scenes or FINE_TUNE_SCENES[object_name]
-    data = work / f"data_{object_name}_{args.renderer}"
-    config = dataset_config(args, object_name, fine_scenes, args.renderer)
-    start = time.perf_counter()
-    report = build_dataset(config, data)
-    print(f"{object_name} ({args.renderer}): {report.frames_written} new frames in {time.perf_counter() - start:.0f} s")
+    fine_scenes, data = stage_two_data(args, work, object_name)
     steps = args.fine_tune_steps
     run = work / f"run_{object_name}_{method}_{args.renderer}"
     hard = {"hard_object_fraction": FINE_TUNE_HARD_OBJECT, "hard_background_fraction": FINE_TUNE_HARD_BACKGROUND}

@@ -41,11 +41,10 @@ DEFAULT_BACKGROUND_MARGIN = 2.5
 HARD_BACKGROUND_BAND_PX = 8
 
 
-def _hardest_mean(
-    squared_error: torch.Tensor, on_region: torch.Tensor, count: torch.Tensor, fraction: float
-) -> torch.Tensor:
+def _hardest_mean(squared_error: torch.Tensor, on_region: torch.Tensor, fraction: float) -> torch.Tensor:
     """Per image ``(B,)``: the mean of the largest ``ceil(fraction x H x W)`` squared errors inside the region."""
     error = (squared_error * on_region).flatten(1)
+    count = on_region.sum(dim=(1, 2))
     hardest = math.ceil(fraction * error.shape[1])
     # Pixels outside the region count 0; where the region has fewer pixels than ``hardest`` the top-k includes
     # zeros, so divide by the region's pixels among them.
@@ -99,14 +98,12 @@ def supervised_l2_loss_terms(
     object_term = (squared_error * on_object).sum(dim=(1, 2)) / object_count.clamp(min=1)
     background_term = (squared_error * on_background).sum(dim=(1, 2)) / background_count.clamp(min=1)
     if hard_object_fraction > 0.0:
-        object_term = object_term + _hardest_mean(squared_error, on_object, object_count, hard_object_fraction)
+        object_term = object_term + _hardest_mean(squared_error, on_object, hard_object_fraction)
     if hard_background_fraction > 0.0:
         band = HARD_BACKGROUND_BAND_PX
         near_object = torch.nn.functional.max_pool2d(on_object[:, None], 2 * band + 1, stride=1, padding=band)[:, 0]
         far_background = on_background * (1.0 - near_object)
-        background_term = background_term + _hardest_mean(
-            squared_error, far_background, far_background.sum(dim=(1, 2)), hard_background_fraction
-        )
+        background_term = background_term + _hardest_mean(squared_error, far_background, hard_background_fraction)
     return object_term, background_term
 
 
