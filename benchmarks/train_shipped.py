@@ -22,7 +22,9 @@ is fine-tuned for ``--fine-tune-steps`` on a dataset of that renderer (``FINE_TU
 seed; for ``mixed`` half its scenes path-traced), with its own run directory ``run_<object>_<method>_<renderer>``;
 the stage-2 network is the one shipped. ``--no-ship`` trains and reports without copying or recording anything, so
 candidates can be judged on development seeds first; the same command without it then ships the finished runs
-without training them again.
+without training them again. ``--fine-tune-seed`` changes stage 2's training seed (0 otherwise): stage-2 runs
+that differ only in seed spread widely on the path-traced scenes (docs/background.md, "Steel that looks like
+steel"), so a change is judged on several seeds, each in its own ``--work``.
 
 Every copied network carries the identity of its part and its descriptor field (docs/reliability.md, "Part
 identity"). ``--restamp`` adds them in place to shipped networks saved without them (weights untouched),
@@ -204,6 +206,13 @@ def main() -> None:
     parser.add_argument(
         "--fine-tune-scenes", type=positive_int, default=None, help="stage 2's scenes (default: FINE_TUNE_SCENES)"
     )
+    parser.add_argument(
+        "--fine-tune-seed",
+        type=int,
+        default=0,
+        help="stage 2's training seed (default 0); runs of several seeds, each with its own --work, measure the "
+        "spread between runs that a change must beat",
+    )
     parser.add_argument("--no-ship", action="store_true", help="train and report; copy and record nothing")
     parser.add_argument("--quick", action="store_true", help="tiny smoke run in a temp dir; copies nothing")
     parser.add_argument(
@@ -323,10 +332,11 @@ def run_config(
     run: Path,
     crop: tuple[int, int],
     steps: int,
+    seed: int = 0,
     **schedule: Any,
 ) -> TrainConfig:
-    """The recipe's training run of ``steps`` steps on ``data`` into ``run``; ``schedule``: the stage's lr, decay
-    and init."""
+    """The recipe's training run of ``steps`` steps on ``data`` into ``run`` with training seed ``seed``;
+    ``schedule``: the stage's lr, decay and init."""
     return TrainConfig(
         method=method,
         data=str(data),
@@ -334,7 +344,7 @@ def run_config(
         steps=steps,
         arch=arch,
         batch_size=args.batch_size,
-        seed=0,
+        seed=seed,
         crop_size=crop,
         background_crop_probability=args.background_crops,
         threads=args.threads,
@@ -402,7 +412,7 @@ def fine_tune(
     run = work / f"run_{object_name}_{method}_{args.renderer}"
     hard = {"hard_object_fraction": FINE_TUNE_HARD_OBJECT, "hard_background_fraction": FINE_TUNE_HARD_BACKGROUND}
     config = run_config(
-        args, method, arch, data, run, crops[object_name], steps,
+        args, method, arch, data, run, crops[object_name], steps, seed=args.fine_tune_seed,
         lr=FINE_TUNE_LR, lr_decay_every=FINE_TUNE_DECAY_EVERY, init_path=str(base),
         **(hard if is_supervised(method) else {}),
     )  # fmt: skip
@@ -418,7 +428,8 @@ def fine_tune(
             f", loss + worst {FINE_TUNE_HARD_OBJECT:.0%} part / {FINE_TUNE_HARD_BACKGROUND:.0%} background pixels"
             if is_supervised(method)
             else ""
-        ),
+        )
+        + (f", training seed {args.fine_tune_seed}" if args.fine_tune_seed else ""),
         "bg crops": f"{args.background_crops:g}",
         "steps": f"{args.steps} + {steps}",
         "lr decay every": f"{args.lr_decay_every} + {FINE_TUNE_DECAY_EVERY} (lr {FINE_TUNE_LR:g})",

@@ -173,6 +173,40 @@ def test_shipped_runs_trained_on_other_scenes_are_refused(tmp_path: Path) -> Non
         train_shipped.check_runs_match(tmp_path, "shaft", ["supervised-edge"], 7)
 
 
+def test_stage_two_trains_with_the_seed_asked_for_and_its_row_says_so(tmp_path: Path, monkeypatch) -> None:
+    """train_shipped.py --fine-tune-seed reaches stage 2's training run and the row's data column; seed 0 (the
+    default) leaves the row as it was."""
+    import train_shipped
+
+    from don_gym.learning.train import TrainResult
+
+    base = tmp_path / "base" / "shaft"
+    base.mkdir(parents=True)
+    shutil.copyfile(SHIPPED_DIR / "shaft" / "supervised-edge.safetensors", base / "supervised-edge.safetensors")
+    seen = []
+
+    def fake_train(config, resume):
+        seen.append(config)
+        return TrainResult(base / "supervised-edge.safetensors", 0.1, config.steps, 60.0, 10.0)
+
+    monkeypatch.setattr(train_shipped, "train", fake_train)
+    rows = {}
+    for seed in (3, 0):
+        args = SimpleNamespace(
+            base=str(tmp_path / "base"), fine_tune_steps=10, fine_tune_scenes=2, fine_tune_seed=seed,
+            renderer="mixed", batch_size=8, background_crops=0.5, threads=1, workers=0, checkpoint_every=None,
+            frames=6, backgrounds="mixed", distractors=4, lighting="random", steps=100, lr_decay_every=750,
+        )  # fmt: skip
+        rows[seed], _, _ = train_shipped.fine_tune(
+            args, tmp_path / f"work{seed}", "shaft", "supervised-edge", "resnet-lite", {"shaft": (128, 128)},
+            {"shaft": 256},
+        )  # fmt: skip
+    assert [config.seed for config in seen] == [3, 0]
+    assert seen[0].init_path == str(base / "supervised-edge.safetensors")
+    assert rows[3]["data"].endswith(", training seed 3")
+    assert rows[0]["data"] == rows[3]["data"].removesuffix(", training seed 3")
+
+
 def test_a_run_of_some_objects_keeps_the_others_marked_with_their_run(tmp_path: Path) -> None:
     """bench_pose.py --objects toolcap (after retraining the toolcap's networks) keeps the shaft's figures, each
     kept part naming the run that measured it, once, however many runs keep it."""
