@@ -46,7 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import RESULTS_PATH, commit_description, read_section, record_section, section_origin  # noqa: E402
 from check_shipped import record_regenerated  # noqa: E402
 
-from don_gym.cli import parse_size, positive_int  # noqa: E402
+from don_gym.cli import nonnegative_int, parse_size, positive_int  # noqa: E402
 from don_gym.data.build import DATASET_RENDERERS, DatasetConfig, build_dataset  # noqa: E402
 from don_gym.data.dataset import FIELD_FILE  # noqa: E402
 from don_gym.descriptors import DescriptorField  # noqa: E402
@@ -208,7 +208,7 @@ def main() -> None:
     )
     parser.add_argument(
         "--fine-tune-seed",
-        type=int,
+        type=nonnegative_int,
         default=0,
         help="stage 2's training seed (default 0); runs of several seeds, each with its own --work, measure the "
         "spread between runs that a change must beat",

@@ -207,6 +207,18 @@ def test_stage_two_trains_with_the_seed_asked_for_and_its_row_says_so(tmp_path: 
     assert rows[0]["data"] == rows[3]["data"].removesuffix(", training seed 3")
 
 
+@pytest.mark.parametrize("seed", ["-1", "1.5", "x"])
+def test_a_bad_stage_two_seed_is_refused_before_any_work(seed: str, tmp_path: Path, monkeypatch, capsys) -> None:
+    import train_shipped
+
+    monkeypatch.setattr(sys, "argv", ["train_shipped.py", "--work", str(tmp_path / "w"), "--fine-tune-seed", seed])
+    with pytest.raises(SystemExit) as exit_info:
+        train_shipped.main()
+    assert exit_info.value.code == 2
+    assert f"argument --fine-tune-seed: {seed!r}: expected a whole number >= 0" in capsys.readouterr().err
+    assert not (tmp_path / "w").exists()
+
+
 def test_a_run_of_some_objects_keeps_the_others_marked_with_their_run(tmp_path: Path) -> None:
     """bench_pose.py --objects toolcap (after retraining the toolcap's networks) keeps the shaft's figures, each
     kept part naming the run that measured it, once, however many runs keep it."""

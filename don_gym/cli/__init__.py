@@ -33,15 +33,24 @@ def parse_size(text: str, option: str = "size") -> tuple[int, int]:
     return width, height
 
 
-def positive_int(text: str) -> int:
-    """An argparse ``type`` for counts: a whole number >= 1; otherwise one line naming the value."""
+def _whole_number(text: str, minimum: int, expected: str) -> int:
     try:
         value = int(text)
     except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a positive whole number")
+        value = minimum - 1
+    if value < minimum:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected {expected}")
     return value
+
+
+def positive_int(text: str) -> int:
+    """An argparse ``type`` for counts: a whole number >= 1; otherwise one line naming the value."""
+    return _whole_number(text, 1, "a positive whole number")
+
+
+def nonnegative_int(text: str) -> int:
+    """An argparse ``type`` for seeds: a whole number >= 0; otherwise one line naming the value."""
+    return _whole_number(text, 0, "a whole number >= 0")
 
 
 class _Parser(argparse.ArgumentParser):
