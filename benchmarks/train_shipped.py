@@ -46,7 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import RESULTS_PATH, commit_description, read_section, record_section, section_origin  # noqa: E402
 from check_shipped import record_regenerated  # noqa: E402
 
-from don_gym.cli import nonnegative_int, parse_size, positive_int  # noqa: E402
+from don_gym.cli import decay_rate, nonnegative_int, parse_size, positive_int  # noqa: E402
 from don_gym.data.build import DATASET_RENDERERS, DatasetConfig, build_dataset  # noqa: E402
 from don_gym.data.dataset import FIELD_FILE  # noqa: E402
 from don_gym.descriptors import DescriptorField  # noqa: E402
@@ -212,6 +212,14 @@ def main() -> None:
         default=0,
         help="stage 2's training seed (default 0); runs of several seeds, each with its own --work, measure the "
         "spread between runs that a change must beat",
+    )
+    parser.add_argument(
+        "--fine-tune-ema",
+        type=decay_rate,
+        default=0.0,
+        metavar="DECAY",
+        help="stage 2 saves an exponential moving average of its weights with this decay (TrainConfig.ema_decay; "
+        "default 0: the last step's weights)",
     )
     parser.add_argument("--no-ship", action="store_true", help="train and report; copy and record nothing")
     parser.add_argument("--quick", action="store_true", help="tiny smoke run in a temp dir; copies nothing")
@@ -413,7 +421,7 @@ def fine_tune(
     hard = {"hard_object_fraction": FINE_TUNE_HARD_OBJECT, "hard_background_fraction": FINE_TUNE_HARD_BACKGROUND}
     config = run_config(
         args, method, arch, data, run, crops[object_name], steps, seed=args.fine_tune_seed,
-        lr=FINE_TUNE_LR, lr_decay_every=FINE_TUNE_DECAY_EVERY, init_path=str(base),
+        lr=FINE_TUNE_LR, lr_decay_every=FINE_TUNE_DECAY_EVERY, init_path=str(base), ema_decay=args.fine_tune_ema,
         **(hard if is_supervised(method) else {}),
     )  # fmt: skip
     result = train(config, resume=True)
@@ -429,7 +437,8 @@ def fine_tune(
             if is_supervised(method)
             else ""
         )
-        + (f", training seed {args.fine_tune_seed}" if args.fine_tune_seed else ""),
+        + (f", training seed {args.fine_tune_seed}" if args.fine_tune_seed else "")
+        + (f", weights averaged (EMA {args.fine_tune_ema:g})" if args.fine_tune_ema else ""),
         "bg crops": f"{args.background_crops:g}",
         "steps": f"{args.steps} + {steps}",
         "lr decay every": f"{args.lr_decay_every} + {FINE_TUNE_DECAY_EVERY} (lr {FINE_TUNE_LR:g})",

@@ -174,8 +174,8 @@ def test_shipped_runs_trained_on_other_scenes_are_refused(tmp_path: Path) -> Non
 
 
 def test_stage_two_trains_with_the_seed_asked_for_and_its_row_says_so(tmp_path: Path, monkeypatch) -> None:
-    """train_shipped.py --fine-tune-seed reaches stage 2's training run and the row's data column; seed 0 (the
-    default) leaves the row as it was."""
+    """train_shipped.py --fine-tune-seed and --fine-tune-ema reach stage 2's training run and the row's data
+    column; seed 0 and no average (the defaults) leave the row as it was."""
     import train_shipped
 
     from don_gym.learning.train import TrainResult
@@ -191,9 +191,9 @@ def test_stage_two_trains_with_the_seed_asked_for_and_its_row_says_so(tmp_path: 
 
     monkeypatch.setattr(train_shipped, "train", fake_train)
     rows = {}
-    for seed in (3, 0):
+    for seed, ema in ((3, 0.998), (0, 0.0)):
         args = SimpleNamespace(
-            base=str(tmp_path / "base"), fine_tune_steps=10, fine_tune_scenes=2, fine_tune_seed=seed,
+            base=str(tmp_path / "base"), fine_tune_steps=10, fine_tune_scenes=2, fine_tune_seed=seed, fine_tune_ema=ema,
             renderer="mixed", batch_size=8, background_crops=0.5, threads=1, workers=0, checkpoint_every=None,
             frames=6, backgrounds="mixed", distractors=4, lighting="random", steps=100, lr_decay_every=750,
         )  # fmt: skip
@@ -201,10 +201,11 @@ def test_stage_two_trains_with_the_seed_asked_for_and_its_row_says_so(tmp_path: 
             args, tmp_path / f"work{seed}", "shaft", "supervised-edge", "resnet-lite", {"shaft": (128, 128)},
             {"shaft": 256},
         )  # fmt: skip
-    assert [config.seed for config in seen] == [3, 0]
+    assert [(config.seed, config.ema_decay) for config in seen] == [(3, 0.998), (0, 0.0)]
     assert seen[0].init_path == str(base / "supervised-edge.safetensors")
-    assert rows[3]["data"].endswith(", training seed 3")
-    assert rows[0]["data"] == rows[3]["data"].removesuffix(", training seed 3")
+    named = ", training seed 3, weights averaged (EMA 0.998)"
+    assert rows[3]["data"].endswith(named)
+    assert rows[0]["data"] == rows[3]["data"].removesuffix(named)
 
 
 @pytest.mark.parametrize("seed", ["-1", "1.5", "x"])
@@ -216,6 +217,18 @@ def test_a_bad_stage_two_seed_is_refused_before_any_work(seed: str, tmp_path: Pa
         train_shipped.main()
     assert exit_info.value.code == 2
     assert f"argument --fine-tune-seed: {seed!r}: expected a whole number >= 0" in capsys.readouterr().err
+    assert not (tmp_path / "w").exists()
+
+
+@pytest.mark.parametrize("decay", ["1", "-0.5", "nan"])
+def test_a_bad_stage_two_average_is_refused_before_any_work(decay: str, tmp_path: Path, monkeypatch, capsys) -> None:
+    import train_shipped
+
+    monkeypatch.setattr(sys, "argv", ["train_shipped.py", "--work", str(tmp_path / "w"), "--fine-tune-ema", decay])
+    with pytest.raises(SystemExit) as exit_info:
+        train_shipped.main()
+    assert exit_info.value.code == 2
+    assert f"argument --fine-tune-ema: {decay!r}: expected a number in [0, 1)" in capsys.readouterr().err
     assert not (tmp_path / "w").exists()
 
 

@@ -188,6 +188,8 @@ def test_data_wait_fraction_is_the_share_of_step_time_spent_waiting_for_batches(
         ({"hard_object_fraction": 0.9}, "hard_object_fraction"),
         ({"hard_background_fraction": -0.1}, "hard_background_fraction"),
         ({"method": "self-supervised", "hard_object_fraction": 0.1}, "no per-pixel targets"),
+        ({"ema_decay": 1.0}, "ema_decay"),
+        ({"ema_decay": float("nan")}, "ema_decay"),
     ],
 )
 def test_bad_settings_are_refused_before_anything_is_written(
@@ -243,6 +245,65 @@ def test_hard_pixel_fractions_from_the_cli(tiny_dataset: str, tmp_path: Path, ca
     assert len(err.splitlines()) == 1 and "hard_object_fraction" in err and not (tmp_path / "bad").exists(), err
 
 
+def _weights(path: Path) -> dict[str, torch.Tensor]:
+    return load_checkpoint(path)[0].state_dict()
+
+
+def test_ema_saves_the_weights_moving_average_and_resumes_it(tiny_dataset: str, tmp_path: Path) -> None:
+    """With ema_decay the checkpoint holds the average, not the last weights: after one step (decay 1/10 then)
+    0.1 x the first weights + 0.9 x the trained ones, exactly as a run without the average trains them; an
+    interrupted run resumes its average; a resume that changes the decay is refused."""
+    plain = replace(_config("supervised", tiny_dataset, tmp_path / "plain", steps=1), checkpoint_every=1)
+    averaged = replace(plain, out=str(tmp_path / "ema"), ema_decay=0.99)
+    train(plain, progress=False)
+    train(averaged, progress=False)
+    assert _columns(tmp_path / "plain") == _columns(tmp_path / "ema")  # the average does not change training
+    torch.manual_seed(plain.seed)
+    first = DenseObjectNet(plain.arch, 3).state_dict()
+    trained, average = (
+        _weights(tmp_path / "plain" / "model.safetensors"),
+        _weights(tmp_path / "ema" / "model.safetensors"),
+    )
+    moved = 0
+    for name, value in trained.items():
+        if value.is_floating_point():
+            torch.testing.assert_close(average[name], 0.1 * first[name] + 0.9 * value, rtol=1e-5, atol=1e-6)
+            moved += not torch.equal(first[name], value)
+    assert moved > 10  # the step changed the weights, so the test tells the average from either end
+    state = torch.load(tmp_path / "ema" / TRAIN_STATE, weights_only=True)
+    assert torch.equal(state["model"]["head.weight"], trained["head.weight"])
+    assert torch.equal(state["ema"]["head.weight"], average["head.weight"])
+    assert read_checkpoint_metadata(tmp_path / "ema" / "model.safetensors").extra["ema_decay"] == 0.99
+
+    # Five steps straight, or two then resumed: the same average, bit for bit.
+    five = replace(averaged, out=str(tmp_path / "five"), steps=5)
+    train(five, progress=False)
+    train(replace(five, out=str(tmp_path / "resumed"), steps=2), progress=False)
+    train(replace(five, out=str(tmp_path / "resumed")), resume=True, progress=False)
+    straight, resumed = (
+        _weights(tmp_path / "five" / "model.safetensors"),
+        _weights(tmp_path / "resumed" / "model.safetensors"),
+    )
+    assert all(torch.equal(straight[name], resumed[name]) for name in straight)
+    with pytest.raises(DonGymError, match="different configuration.*ema_decay"):
+        train(replace(five, out=str(tmp_path / "resumed"), ema_decay=0.9, steps=6), resume=True, progress=False)
+
+
+def test_ema_decay_from_the_cli(tiny_dataset: str, tmp_path: Path, capsys) -> None:
+    argv = ["train", "--method", "supervised", "--data", tiny_dataset, "--batch-size", "1", "--crop", "32x32",
+            "--threads", "1", "--workers", "0", "--device", "cpu", "--steps", "1"]  # fmt: skip
+    assert cli_main([*argv, "--out", str(tmp_path / "run"), "--ema-decay", "0.999"]) == 0
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["ema_decay"] == 0.999
+    capsys.readouterr()
+    for bad in ("1", "-0.1", "nan", "x"):
+        with pytest.raises(SystemExit) as refused:  # refused while parsing, as argparse does
+            cli_main([*argv, "--out", str(tmp_path / "bad"), "--ema-decay", bad])
+        assert refused.value.code == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "--ema-decay" in err and repr(bad) in err, err
+    assert not (tmp_path / "bad").exists()
+
+
 def test_train_cli_defaults_are_train_configs() -> None:
     """The CLI lists its defaults literally (no torch import to parse arguments); they must be TrainConfig's."""
     from don_gym.cli import build_parser
@@ -252,6 +313,7 @@ def test_train_cli_defaults_are_train_configs() -> None:
     assert args.checkpoint_every == TrainConfig.checkpoint_every
     assert args.hard_object == TrainConfig.hard_object_fraction
     assert args.hard_background == TrainConfig.hard_background_fraction
+    assert args.ema_decay == TrainConfig.ema_decay
 
 
 def test_part_layout_identity_on_a_dataset_of_one_part_is_one_line(tiny_dataset: str, tmp_path: Path, capsys) -> None:

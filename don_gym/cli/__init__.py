@@ -53,6 +53,17 @@ def nonnegative_int(text: str) -> int:
     return _whole_number(text, 0, "a whole number >= 0")
 
 
+def decay_rate(text: str) -> float:
+    """An argparse ``type`` for a moving average's decay: a number in [0, 1); otherwise one line naming the value."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0.0 <= value < 1.0:  # NaN fails too
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a number in [0, 1), e.g. 0.999")
+    return value
+
+
 class _Parser(argparse.ArgumentParser):
     """Usage errors (a bad choice, a missing value) as one line like every other error, with a pointer to --help."""
 

@@ -6,6 +6,7 @@ import argparse
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    from don_gym.cli import decay_rate
     from don_gym.learning.methods import METHOD_DESCRIPTIONS, METHODS
 
     methods = "; ".join(f"{m}: {METHOD_DESCRIPTIONS[m]}" for m in METHODS)
@@ -83,6 +84,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="FRACTION",
         help="supervised methods: also penalise each crop's worst FRACTION of background pixels (e.g. 0.01), "
         "those whose descriptors drift towards the part's and take matches off it (0: the plain l2 loss)",
+    )
+    parser.add_argument(
+        "--ema-decay",
+        type=decay_rate,
+        default=0.0,
+        metavar="DECAY",
+        help="save an exponential moving average of the weights, updated every step with this decay (e.g. 0.999, "
+        "an average over about the last 1000 steps), instead of the last step's weights (0: off)",
     )
     parser.add_argument(
         "--background-crops",
@@ -170,6 +179,7 @@ def run(args: argparse.Namespace) -> int:
         background_crop_probability=args.background_crops,
         hard_object_fraction=args.hard_object,
         hard_background_fraction=args.hard_background,
+        ema_decay=args.ema_decay,
         augment=asdict(AugmentConfig(pattern_probability=args.pattern_backgrounds)),
         threads=args.threads,
         workers=args.workers,

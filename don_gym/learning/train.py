@@ -132,7 +132,11 @@ class TrainConfig:
     part and descriptor space (e.g. a shipped network, to adapt it to new data) instead of random ones.
     ``hard_object_fraction`` and ``hard_background_fraction`` (supervised methods) add to the loss's object and
     background terms the mean error of each crop's worst fraction of pixels of that region
-    (:func:`~don_gym.learning.losses.supervised_l2_loss_terms`)."""
+    (:func:`~don_gym.learning.losses.supervised_l2_loss_terms`).
+    ``ema_decay`` > 0 keeps an exponential moving average of the weights (and of batch-norm's running statistics),
+    updated after every step with decay ``min(ema_decay, (1 + t) / (10 + t))`` at step t, so that the first
+    steps do not hold on to the starting weights; checkpoints and the final model then hold the average, the
+    resumable state both. 0 (the default) saves the weights as trained."""
 
     method: str
     data: str
@@ -162,6 +166,7 @@ class TrainConfig:
     init_path: str | None = None
     hard_object_fraction: float = 0.0
     hard_background_fraction: float = 0.0
+    ema_decay: float = 0.0
 
     def learning_rate(self) -> float:
         if self.lr is not None:
@@ -217,6 +222,7 @@ def validate_config(config: TrainConfig) -> None:
     _real(config, "background_crop_probability", 0.0, 1.0)
     _real(config, "hard_object_fraction", 0.0, 0.5)
     _real(config, "hard_background_fraction", 0.0, 0.5)
+    _real(config, "ema_decay", 0.0, 0.99999)
     _real(config, "object_margin", 0.0, 1e6)
     _real(config, "background_margin", 0.0, 1e6)
     if config.depth_source not in DEPTH_SOURCES:
@@ -428,6 +434,7 @@ def checkpoint_metadata(
             "background_crop_probability": config.background_crop_probability,
             "hard_object_fraction": config.hard_object_fraction,
             "hard_background_fraction": config.hard_background_fraction,
+            "ema_decay": config.ema_decay,
             "dataset_scenes": int(dataset_info["scenes"]),
             "dataset_frames_per_scene": int(dataset_info["frames_per_scene"]),
             "dataset_seed": int(dataset_info["seed"]),
@@ -612,6 +619,9 @@ class _TrainingRun:
             self.optimizer, step_size=config.lr_decay_every, gamma=config.lr_decay
         )
         self.scaler = torch.amp.GradScaler(device.type) if amp_dtype == torch.float16 else None
+        # The average starts from the network's first weights (random, pretrained or fine-tuned from; set again in
+        # ``open_run_dir``) or from the resumed state's average (``restore``).
+        self.ema_model = _frozen_copy(self.model) if config.ema_decay > 0 else None
         self.start_step = 0
         # Training time and images of earlier sessions of a resumed run; None when unknown.
         self.earlier_seconds: float | None = 0.0
@@ -636,6 +646,8 @@ class _TrainingRun:
                 self.model.load_pretrained_encoder(config.pretrained_path)
             if run.state is None and config.init_path is not None:
                 self.load_init_weights(Path(config.init_path))
+            if run.state is None and self.ema_model is not None:
+                self.ema_model.load_state_dict(self.model.state_dict())
             with _writing(out / RUN_CONFIG):
                 saved = {**asdict(config), DATASET_IDENTITY_KEY: self.identity}
                 write_text_atomic(out / RUN_CONFIG, json.dumps(saved, indent=1) + "\n")
@@ -680,6 +692,8 @@ class _TrainingRun:
                 self.scheduler.load_state_dict(state["scheduler"])
                 if self.scaler is not None and "scaler" in state:
                     self.scaler.load_state_dict(state["scaler"])
+                if self.ema_model is not None:
+                    self.ema_model.load_state_dict(state["ema"])
             except (KeyError, RuntimeError, ValueError) as exc:
                 detail = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
                 raise same_on_every_process(
@@ -723,12 +737,30 @@ class _TrainingRun:
                         "scheduler": self.scheduler.state_dict(),
                         "step": step,
                         **({} if self.scaler is None else {"scaler": self.scaler.state_dict()}),
+                        **({} if self.ema_model is None else {"ema": self.ema_model.state_dict()}),
                         **timing,
                     },
                     tmp,
                 )
         with _writing(self.out / LOSS_CSV):
             _write_loss_csv(self.out / LOSS_CSV, self.rows)
+
+    def saved_network(self) -> torch.nn.Module:
+        """What checkpoints hold: the weights' moving average when ``ema_decay`` > 0, else the weights."""
+        return self.model if self.ema_model is None else self.ema_model
+
+    def update_average(self, step: int) -> None:
+        """Fold the weights after step ``step`` (0-based) into their moving average."""
+        if self.ema_model is None:
+            return
+        decay = min(self.config.ema_decay, (1 + step) / (10 + step))
+        with torch.no_grad():
+            averaged = self.ema_model.state_dict()
+            for name, value in self.model.state_dict().items():
+                if value.is_floating_point():
+                    averaged[name].lerp_(value, 1.0 - decay)
+                else:  # batch-norm's step counters
+                    averaged[name].copy_(value)
 
     def save(self, step: int, path: Path, seconds: float | None = None) -> None:
         """Rank 0: the weights at ``path``, then the state and losses (a crash in between keeps the older state)."""
@@ -738,7 +770,7 @@ class _TrainingRun:
             self.config, self.info, self.image_size, step, self.target_background, self.part_space_record
         )
         with _writing(path):
-            save_checkpoint(path, self.model, metadata, identity=self.part_identity)
+            save_checkpoint(path, self.saved_network(), metadata, identity=self.part_identity)
         self.save_state(step, seconds)
         with _writing(self.out / LOSS_PNG):
             plot_loss_curve(self.rows, self.out / LOSS_PNG, self.title)
@@ -772,6 +804,7 @@ class _TrainingRun:
                 scaler.step(self.optimizer)
                 scaler.update()
             self.scheduler.step()
+            self.update_average(step)
         except RuntimeError as exc:
             if launch.world_size == 1:
                 raise
@@ -871,6 +904,16 @@ def _train(
     seconds = session.session_seconds()
     session.save(config.steps, session.out / FINAL_MODEL, seconds)  # the state records the time this run reports
     return session.result(seconds, steady_from, data_wait)
+
+
+def _frozen_copy(model: torch.nn.Module) -> torch.nn.Module:
+    """A copy of ``model`` in eval mode that no optimiser sees, to hold its weights' moving average."""
+    copy = DenseObjectNet(model.arch, model.descriptor_dim).to(next(model.parameters()).device)
+    copy.load_state_dict(model.state_dict())
+    copy.eval()
+    for parameter in copy.parameters():
+        parameter.requires_grad_(False)
+    return copy
 
 
 def _to_device(tensor: torch.Tensor, device: torch.device) -> torch.Tensor:
