@@ -319,3 +319,30 @@ def test_the_machine_busy_time_includes_this_process() -> None:
         pass
     own_s = sum(os.times()[:2]) - own_before
     assert _results._machine_busy_seconds() - before >= 0.8 * own_s > 0
+
+
+def test_fine_tune_table_of_where_the_tail_comes_from(tmp_path: Path) -> None:
+    """bench_fine_tune.py's edge table: one row per network (the oracle left out, candidates by their label), one
+    column per band, each cell the band's tail and far shares and its share of the matches (here the oracle's
+    descriptors under a candidate's name: no tail)."""
+    import bench_fine_tune
+
+    from don_gym.data.build import DatasetConfig, build_dataset
+    from don_gym.evaluation.tracking import TrackingConfig, evaluate_tracking
+
+    data = tmp_path / "data"
+    build_dataset(DatasetConfig(scenes=1, frames_per_scene=3, image_size=(128, 96), sensor="ideal", seed=1000,
+                                fuse_depth=False), data, progress=False)  # fmt: skip
+
+    result = evaluate_tracking(data, {"oracle": "oracle", "/x/cand.safetensors": "oracle"},
+                               TrackingConfig(points_per_scene=8), progress=False)  # fmt: skip
+    table = bench_fine_tune.edge_table(result, {"/x/cand.safetensors": "toolcap/supervised-edge (mixed fine-tune)"}, 45)
+    lines = table.splitlines()
+    assert "more than 45 mm (the p99 target) / more than 100 mm off" in lines[0]
+    assert lines[2] == "| network | 0-3 px | 3-6 px | 6-10 px | > 10 px |"
+    rows = [line for line in lines if line.startswith("| toolcap/")]
+    assert len(rows) == 1 and "oracle" not in table.split("\n\n", 1)[1]
+    cells = rows[0].strip("| ").split(" | ")[1:]
+    shares = [float(c.split("(")[1].rstrip("%)")) for c in cells if c != "-"]
+    assert abs(sum(shares) - 100) <= 2  # the bands split every match with depth (rounded to whole percent)
+    assert all(c == "-" or c.startswith("0.0% / 0.0%") for c in cells)  # the oracle's matches are exact

@@ -17,7 +17,7 @@ from don_gym.data.build import DatasetConfig, build_dataset
 from don_gym.errors import DonGymError
 from don_gym.evaluation.report import per_scene_table
 from don_gym.evaluation.splits import seed_split
-from don_gym.evaluation.tracking import TrackingConfig, evaluate_tracking
+from don_gym.evaluation.tracking import TrackingConfig, evaluate_tracking, reference_edge_distances_px
 from don_gym.evaluation.tracking_metrics import (
     FAR_MATCH_M,
     MATCH_CATEGORIES,
@@ -26,6 +26,7 @@ from don_gym.evaluation.tracking_metrics import (
     long_tail_verdict,
     match_descriptors,
     symmetric_distance,
+    tail_by_edge_distance,
     tracking_errors,
     visible_projections,
     world_points_at,
@@ -190,6 +191,45 @@ def test_oracle_tracks_with_near_zero_error_and_noise_does_not(ideal_dataset: Pa
     # Same reference points and visibility for every method.
     np.testing.assert_array_equal(oracle.frame, random.frame)
     np.testing.assert_array_equal(oracle.point, random.point)
+
+
+def test_reference_edge_distances_are_each_reference_pixels_distance_inside_its_silhouette(
+    ideal_dataset: Path,
+) -> None:
+    """Checked against a brute-force distance to the nearest off-part pixel; references keep the protocol's
+    1-pixel erosion, so none lies on the silhouette itself."""
+    from don_gym.data.dataset import DONDataset
+
+    result = evaluate_tracking(ideal_dataset, {"oracle": "oracle"}, TrackingConfig(points_per_scene=12), progress=False)
+    distances = reference_edge_distances_px(result, "oracle")
+    matches = result.matches["oracle"]
+    assert distances.shape == matches.error_3d_m.shape and distances.min() >= 2.0 - 1e-6
+    data = DONDataset(ideal_dataset)
+    for i in np.linspace(0, len(distances) - 1, 7).astype(int):
+        mask = np.asarray(data.image(int(matches.scene[i]), int(matches.reference_frame[i]), "mask"), dtype=bool)
+        rows, cols = np.nonzero(~mask)
+        u, v = matches.reference_uv[i]
+        assert mask[v, u]
+        assert distances[i] == pytest.approx(np.sqrt((cols - u) ** 2 + (rows - v) ** 2).min(), abs=0.05)
+    with pytest.raises(DonGymError, match="'edge'.*oracle"):
+        reference_edge_distances_px(result, "edge")
+
+
+def test_tail_by_edge_distance_counts_each_band() -> None:
+    distance = np.array([2.0, 2.5, 3.0, 4.0, 7.0, 12.0, 30.0, 1.5])
+    error = np.array([0.2, 0.01, 0.05, 0.01, 0.01, 0.06, 0.0, np.nan])  # the last has no depth
+    rows = tail_by_edge_distance(distance, error, tail_m=0.045)
+    assert [(r["low_px"], r["high_px"], r["matches"]) for r in rows] == [
+        (0.0, 3.0, 3), (3.0, 6.0, 1), (6.0, 10.0, 1), (10.0, np.inf, 2)
+    ]  # fmt: skip
+    assert [r["tail_share"] for r in rows] == pytest.approx([2 / 3, 0.0, 0.0, 0.5])
+    assert [r["far_share"] for r in rows] == pytest.approx([1 / 3, 0.0, 0.0, 0.0])
+    assert [r["share"] for r in rows] == pytest.approx([3 / 7, 1 / 7, 1 / 7, 2 / 7])
+    assert tail_by_edge_distance(distance, error, 0.045, bands_px=(100.0,))[1]["tail_share"] is None
+    with pytest.raises(DonGymError, match="bands_px"):
+        tail_by_edge_distance(distance, error, 0.045, bands_px=(6.0, 3.0))
+    with pytest.raises(DonGymError, match=r"\(M,\)"):
+        tail_by_edge_distance(distance[:3], error, 0.045)
 
 
 def _tiny_checkpoint(path: Path, object_name: str) -> Path:

@@ -30,6 +30,7 @@ __all__ = [
     "RenderedInstances",
     "RenderedTarget",
     "default_edge_width_px",
+    "distance_inside_px",
     "edge_blend",
     "embree_available",
     "make_instances_target",
@@ -468,9 +469,10 @@ def _mask_box(mask: np.ndarray) -> tuple[slice, slice] | None:
     )
 
 
-def _distance_inside(object_mask: np.ndarray) -> np.ndarray:
-    """Euclidean distance (pixels) from each object pixel centre to the nearest off-object pixel
-    centre; 0 off the object. Pixels beyond the image border count as far away (OpenCV's rule)."""
+def distance_inside_px(object_mask: np.ndarray) -> np.ndarray:
+    """(H, W) float32: Euclidean distance (pixels) from each pixel centre of the (H, W) bool ``object_mask`` to the
+    nearest off-object pixel centre; 0 off the object. Pixels beyond the image border count as far away (OpenCV's
+    rule): the image border is not a silhouette."""
     return cv2.distanceTransform(object_mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
 
 
@@ -514,7 +516,7 @@ def edge_blend(
         return blended
     crop = mask[box]
     rows, cols = np.nonzero(crop)
-    weight = np.clip((_distance_inside(crop)[rows, cols] - 0.5) / np.float32(width_px), 0.0, 1.0)[:, None]
+    weight = np.clip((distance_inside_px(crop)[rows, cols] - 0.5) / np.float32(width_px), 0.0, 1.0)[:, None]
     blended[box][rows, cols] = background + weight * (descriptor_image[box][rows, cols] - background)
     return blended
 
@@ -540,7 +542,7 @@ def mask_channel(object_mask: np.ndarray) -> np.ndarray:
     box = _mask_box(mask)
     if box is None:
         return channel
-    distance = _distance_inside(np.pad(mask[box], 1, constant_values=False))[1:-1, 1:-1]
+    distance = distance_inside_px(np.pad(mask[box], 1, constant_values=False))[1:-1, 1:-1]
     channel[box] = distance / distance.max()
     return channel
 

@@ -15,6 +15,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from don_gym.data.dataset import DONDataset
+from don_gym.data.render import distance_inside_px
 from don_gym.errors import DonGymError
 from don_gym.evaluation.frames import open_datasets, pooled_object, source_info
 from don_gym.evaluation.splits import seed_split
@@ -58,6 +59,7 @@ __all__ = [
     "evaluate_tracking_depths",
     "evaluate_tracking_per_part",
     "methods_for_part",
+    "reference_edge_distances_px",
 ]
 
 
@@ -350,6 +352,29 @@ def _pile_part(datasets: list[DONDataset], part: str | None) -> ObjectModel:
         if part not in models or model.shape_signature.differences(models[part].shape_signature):
             raise DonGymError(f"dataset {other.root} holds no part {part!r} of the shape of {datasets[0].root}'s")
     return model
+
+
+def reference_edge_distances_px(result: TrackingResult, method: str) -> np.ndarray:
+    """(M,) float: for each match of ``method`` in ``result``, the distance (pixels) of its reference pixel inside the
+    part's silhouette in the reference frame (:func:`~don_gym.data.render.distance_inside_px` of the dataset's
+    ``mask``), for :func:`~don_gym.evaluation.tracking_metrics.tail_by_edge_distance`. Datasets of one part only:
+    in a pile the reference lies on one instance among others."""
+    if method not in result.matches:
+        raise DonGymError(f"method {method!r}: not in this result; it has {sorted(result.matches)}")
+    datasets = [DONDataset(path) for path in result.datasets]
+    piles = [str(data.root) for data in datasets if data.scene_kind == "bin"]
+    if piles:
+        raise DonGymError(f"{piles[0]}: a dataset of bins; reference edge distances are for datasets of one part")
+    matches = result.matches[method]
+    distances = np.zeros(len(matches.reference_frame), dtype=np.float64)
+    keys = np.stack([matches.dataset, matches.scene, matches.reference_frame], axis=1)
+    for key in np.unique(keys, axis=0):
+        rows = np.flatnonzero((keys == key).all(axis=1))
+        d, scene, frame = (int(v) for v in key)
+        inside = distance_inside_px(np.asarray(datasets[d].image(scene, frame, "mask"), dtype=bool))
+        u, v = matches.reference_uv[rows, 0], matches.reference_uv[rows, 1]
+        distances[rows] = inside[v, u]
+    return distances
 
 
 def methods_for_part(methods: Sequence[str], part: ObjectModel) -> list[str]:

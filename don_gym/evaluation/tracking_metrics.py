@@ -18,6 +18,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics, backproject_depth, invert_transform, project_points, transform_points
 from don_gym.objects import ObjectModel
 from don_gym.perception.keypoints import descriptor_distances, match_region, project_visible
@@ -32,6 +33,7 @@ from don_gym.stats import (
 
 __all__ = [
     "BOOTSTRAP_SEED",
+    "EDGE_BANDS_PX",
     "FAR_MATCH_M",
     "LONG_TAIL_RATIO",
     "MATCH_CATEGORIES",
@@ -49,6 +51,7 @@ __all__ = [
     "percentiles",
     "select_reference_pixels",
     "symmetric_distance",
+    "tail_by_edge_distance",
     "tracking_errors",
     "usable_reference_mask",
     "visible_projections",
@@ -62,6 +65,10 @@ PERCENTILES: tuple[int, ...] = (50, 90, 99)
 # --- tails ----------------------------------------------------------------------------------------
 #: A match further than this from the true point (3D error, metres) is *far*: off the part.
 FAR_MATCH_M = 0.100
+#: Upper bounds (pixels) of the bands of a reference pixel's distance inside the silhouette that
+#: :func:`tail_by_edge_distance` reports: within the edge-blend width of the supervised-edge targets at 640 px
+#: (:data:`~don_gym.data.render.EDGE_WIDTH_PX_AT_640`), twice it, and about the network's output stride.
+EDGE_BANDS_PX = (3.0, 6.0, 10.0)
 #: A 3D error has a long tail when its 99th percentile is at least this many times its median.
 LONG_TAIL_RATIO = 10.0
 #: Where a match lands (:func:`attribute_matches`), by index.
@@ -263,6 +270,56 @@ def far_matches(error_3d_m: np.ndarray) -> np.ndarray:
     error = np.asarray(error_3d_m, dtype=np.float64)
     with np.errstate(invalid="ignore"):
         return np.isfinite(error) & (error > FAR_MATCH_M)
+
+
+def tail_by_edge_distance(
+    edge_distance_px: np.ndarray,
+    error_3d_m: np.ndarray,
+    tail_m: float,
+    bands_px: Sequence[float] = EDGE_BANDS_PX,
+) -> list[dict[str, Any]]:
+    """Where a tail comes from: the matches grouped by how far their reference pixel lies inside the part's
+    silhouette in the reference frame.
+
+    Args:
+        edge_distance_px: (M,) distance (pixels) of each match's reference pixel from the silhouette (the
+            reference frame's :func:`~don_gym.data.render.distance_inside_px`).
+        error_3d_m: (M,) 3D errors (metres); NaN (no depth) is left out.
+        tail_m: the tail's threshold (metres), e.g. a p99 target.
+        bands_px: increasing upper bounds (pixels) of the bands; a last band takes everything beyond.
+
+    Returns:
+        One dict per band: ``low_px``, ``high_px`` (inf for the last), ``matches`` (with depth),
+        ``share`` of all matches with depth, ``tail_share`` (over ``tail_m``) and ``far_share`` (over
+        :data:`FAR_MATCH_M`) among the band's matches (None for an empty band).
+    """
+    distance = np.asarray(edge_distance_px, dtype=np.float64)
+    error = np.asarray(error_3d_m, dtype=np.float64)
+    if distance.shape != error.shape or distance.ndim != 1:
+        raise DonGymError(
+            f"tail_by_edge_distance: edge_distance_px and error_3d_m must both be (M,), got {distance.shape} and "
+            f"{error.shape}"
+        )
+    edges = [float(b) for b in bands_px]
+    if not edges or any(b <= 0 or not np.isfinite(b) for b in edges) or edges != sorted(set(edges)):
+        raise DonGymError(f"bands_px {list(bands_px)}: expected increasing positive pixel distances")
+    valid = np.isfinite(error)
+    total = int(valid.sum())
+    rows = []
+    for low, high in zip([0.0, *edges], [*edges, np.inf], strict=True):
+        band = valid & (distance > low) & (distance <= high)
+        count = int(band.sum())
+        rows.append(
+            {
+                "low_px": low,
+                "high_px": high,
+                "matches": count,
+                "share": count / total if total else None,
+                "tail_share": float(np.mean(error[band] > tail_m)) if count else None,
+                "far_share": float(np.mean(error[band] > FAR_MATCH_M)) if count else None,
+            }
+        )
+    return rows
 
 
 def percentiles(values: np.ndarray, which: Sequence[int] = PERCENTILES) -> dict[str, float | None]:
