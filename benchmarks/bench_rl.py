@@ -441,6 +441,8 @@ def _sac_env_kwargs(args: argparse.Namespace, keypoint_model: str) -> dict[str, 
         "sensor": args.sensor,
         "max_steps": args.sac_max_steps,
         "goal": args.sac_goal,
+        "memory": args.sac_memory,
+        "window_px": args.sac_window,
     }
 
 
@@ -549,12 +551,15 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
     body = [
         f'**SAC with HER on `control="ee"`**, goal: {goal_text}; sparse goal reward, episodes of at most '
         f"{args.sac_max_steps} steps, {args.sac_envs} env(s); policy input: TCP pose, gripper width and the "
-        "keypoints of each frame (the true `achieved_goal` only relabels and rewards, it is not a policy input) "
-        f"plus the desired goal. Keypoints: `simulated` (a model of `{keypoint_model}`, no rendering), `don` "
-        f"(`{keypoint_model}` on {args.image_size[0]}x{args.image_size[1]} wrist images), `true` (exact, always "
-        f"seen). {times}; {starts_text}. Learning starts {args.sac_learning_starts}, MLP 256x256, seed "
-        f"{args.seed}. Runs: `{_shown(args.out)}/sac_{args.sac_goal}_*`. Learning curves (training episodes, "
-        f"all starts, beside a random policy on the same starts): `{_shown(figure)}`.",
+        "keypoints of each frame (the true `achieved_goal` only relabels and rewards, it is not a policy input)"
+        + (", each keypoint's last seen place and age (`KeypointMemory`)" if args.sac_memory else "")
+        + f" plus the desired goal. Keypoints: `simulated` (a model of `{keypoint_model}`, no rendering; hidden "
+        f"outside the camera's view and the sensor's depth range), `don` (`{keypoint_model}` on "
+        f"{args.image_size[0]}x{args.image_size[1]} wrist images"
+        + (f", in a {args.sac_window}-pixel window around the part" if args.sac_window else "")
+        + f"), `true` (exact, always seen). {times}; {starts_text}. Learning starts {args.sac_learning_starts}, "
+        f"MLP 256x256, seed {args.seed}. Runs: `{_shown(args.out)}/sac_{args.sac_goal}_*`. Learning curves "
+        f"(training episodes, all starts, beside a random policy on the same starts): `{_shown(figure)}`.",
         "",
         f"Evaluation on the same {n} held-out episodes (seeds {EVAL_SEED}..{EVAL_SEED + n - 1}) from two starts: "
         "the task's own (the hand 0.45 m above the table, open) and the part in the closed hand (`hand_start="
@@ -618,7 +623,7 @@ PART_SETTINGS = {
     "ppo": ("ppo_envs", "ppo_steps", "ppo_rollout", "ppo_eval_episodes"),
     "sac": (
         "sac_goal", "sac_envs", "sac_steps", "sac_don_steps", "sac_max_steps", "sac_learning_starts",
-        "sac_eval_episodes", "sac_hand_starts", "vectorize",
+        "sac_eval_episodes", "sac_hand_starts", "sac_memory", "sac_window", "vectorize",
     ),
 }  # fmt: skip
 COMMON_SETTINGS = ("keypoint_model", "sensor", "seed", "image_size", "train_device")
@@ -690,6 +695,15 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--sac-max-steps", type=positive_int, default=50)
     parser.add_argument("--sac-learning-starts", type=int, default=rl.DEFAULT_ALGO_KWARGS["sac-her"]["learning_starts"])
     parser.add_argument("--sac-eval-episodes", type=positive_int, default=20)
+    parser.add_argument(
+        "--sac-memory", action="store_true",
+        help="the policies also see each keypoint's last seen place and age (KeypointMemory), so they still know "
+        "where the part is once the camera has lost it",
+    )  # fmt: skip
+    parser.add_argument(
+        "--sac-window", type=positive_int, default=None, metavar="PX",
+        help="the DON runs on a PX-pixel window around the part instead of the whole frame (e.g. 192)",
+    )  # fmt: skip
     parser.add_argument(
         "--sac-hand-starts", type=_hand_starts, default=DEFAULT_HAND_STARTS, metavar="START=SHARE,...",
         help="shares of SAC training episodes that start with the hand at or on the part (HandStarts; "

@@ -74,6 +74,30 @@ def test_runs_with_other_settings_record_beside_the_default_ones(tmp_path: Path)
     assert bench_rl._custom_settings(parser, other_part, "throughput") == ["keypoint_model"]
 
 
+def test_sac_memory_and_window_reach_every_sac_run_and_record_apart(tmp_path: Path) -> None:
+    """--sac-memory and --sac-window go into each SAC run's env (memory for every keypoint source; the window only
+    changes the DON's), and the runs record beside the default ones; the env they describe is built."""
+    parser = bench_rl._parser()
+    args = parser.parse_args(["--out", str(tmp_path), "--sac-memory", "--sac-window", "192"])
+    assert bench_rl._custom_settings(parser, args, "sac") == ["sac_memory", "sac_window"]
+    args.image_size = (64, 48)
+    runs = bench_rl.sac_runs(args, "oracle")
+    assert [run.kwargs["env_kwargs"]["keypoints"] for run in runs] == list(bench_rl.SAC_SOURCES)
+    assert all(run.kwargs["env_kwargs"]["memory"] and run.kwargs["env_kwargs"]["window_px"] == 192 for run in runs)
+    default = bench_rl.sac_runs(_args(tmp_path), "oracle")[0].kwargs["env_kwargs"]
+    assert not default["memory"] and default["window_px"] is None
+    env = rl.make_sac_env(**(runs[0].kwargs["env_kwargs"] | {"max_steps": 5}))
+    try:
+        obs, _ = env.reset(seed=0)
+        plain = rl.make_sac_env(**(default | {"keypoints": "simulated", "max_steps": 5}))
+        plain_obs, _ = plain.reset(seed=0)
+        plain.close()
+        # The memory adds each keypoint's place (3) and age (1) to the policy's observation.
+        assert obs["observation"].shape[0] == plain_obs["observation"].shape[0] + 2 * 4
+    finally:
+        env.close()
+
+
 @pytest.mark.parametrize("jobs", ["0", "-1", "x", "1.5"])
 def test_jobs_must_be_a_positive_integer(jobs: str, capsys) -> None:
     with pytest.raises(SystemExit) as exit_info:
