@@ -37,14 +37,21 @@ Longer CPU recipe for the SAC part, continuing the default runs in ``runs/rl`` (
 again): the DON-keypoint run from its 20,000 default steps to 40,000 (~60 min more on 2 cores), the simulated and
 true runs from 40,000 to 80,000 (~40 min more), at which the true-keypoint policy also lifts from the task's own
 start, then the DON-keypoint run to 60,000 and 80,000 (~60 min more each), at which the DON-trained policy lifts
-the part from the hand as the others do (RESULTS "rl-sac-custom", beside the default budgets' "rl-sac": true 75%
-from the task's start; DON-trained from the hand 25% at 40,000, 65% at 60,000, 100% at 80,000; random 10%). Times
-are of the runs one after the other; ``--jobs`` trains the three side by side::
+the part from the hand as the others do (recorded 2026-11-30 at commit c13dabf, beside the default budgets'
+"rl-sac": true 75% from the task's start; DON-trained from the hand 25% at 40,000, 65% at 60,000, 100% at 80,000;
+random 10%). Times are of the runs one after the other; ``--jobs`` trains the three side by side::
 
     python benchmarks/bench_rl.py --only sac --sac-don-steps 40000 --resume
     python benchmarks/bench_rl.py --only sac --sac-don-steps 40000 --sac-steps 80000 --resume
     python benchmarks/bench_rl.py --only sac --sac-don-steps 60000 --sac-steps 80000 --resume
     python benchmarks/bench_rl.py --only sac --sac-don-steps 80000 --sac-steps 80000 --resume
+
+With each keypoint's last seen place and age (``--sac-memory``) and the DON on a 192-pixel window
+(``--sac-window 192``), 80,000 steps for every source take about 70 min with ``--jobs 2`` (RESULTS
+"rl-sac-custom", issue 58 item 5)::
+
+    python benchmarks/bench_rl.py --only sac --sac-memory --sac-window 192 --sac-steps 80000 \
+        --sac-don-steps 80000 --out runs/rl-mem --jobs 2
 
 Longer recipe for a GPU machine (16 cores, one GPU: the DON on the GPU on 8 envs' images at once, their
 physics in 8 subprocesses, a gradient step per env step)::
