@@ -208,27 +208,24 @@ def test_stage_two_trains_with_the_seed_asked_for_and_its_row_says_so(tmp_path: 
     assert rows[0]["data"] == rows[3]["data"].removesuffix(named)
 
 
-@pytest.mark.parametrize("seed", ["-1", "1.5", "x"])
-def test_a_bad_stage_two_seed_is_refused_before_any_work(seed: str, tmp_path: Path, monkeypatch, capsys) -> None:
+@pytest.mark.parametrize(
+    ("option", "value", "expected"),
+    [
+        *[("--fine-tune-seed", seed, "expected a whole number >= 0") for seed in ("-1", "1.5", "x")],
+        *[("--fine-tune-ema", decay, "expected a number in [0, 1)") for decay in ("1", "-0.5", "nan")],
+    ],
+)
+def test_a_bad_stage_two_option_is_refused_before_any_work(
+    option: str, value: str, expected: str, tmp_path: Path, monkeypatch, capsys
+) -> None:
+    """Stage 2's seed and moving average are refused while parsing, before the stage-2 dataset build."""
     import train_shipped
 
-    monkeypatch.setattr(sys, "argv", ["train_shipped.py", "--work", str(tmp_path / "w"), "--fine-tune-seed", seed])
+    monkeypatch.setattr(sys, "argv", ["train_shipped.py", "--work", str(tmp_path / "w"), option, value])
     with pytest.raises(SystemExit) as exit_info:
         train_shipped.main()
     assert exit_info.value.code == 2
-    assert f"argument --fine-tune-seed: {seed!r}: expected a whole number >= 0" in capsys.readouterr().err
-    assert not (tmp_path / "w").exists()
-
-
-@pytest.mark.parametrize("decay", ["1", "-0.5", "nan"])
-def test_a_bad_stage_two_average_is_refused_before_any_work(decay: str, tmp_path: Path, monkeypatch, capsys) -> None:
-    import train_shipped
-
-    monkeypatch.setattr(sys, "argv", ["train_shipped.py", "--work", str(tmp_path / "w"), "--fine-tune-ema", decay])
-    with pytest.raises(SystemExit) as exit_info:
-        train_shipped.main()
-    assert exit_info.value.code == 2
-    assert f"argument --fine-tune-ema: {decay!r}: expected a number in [0, 1)" in capsys.readouterr().err
+    assert f"argument {option}: {value!r}: {expected}" in capsys.readouterr().err
     assert not (tmp_path / "w").exists()
 
 
