@@ -128,6 +128,22 @@ def test_two_processes_of_batch_4_match_one_of_batch_8(dataset: str, tmp_path: P
             torch.testing.assert_close(two["model"][name], buffer, rtol=1e-4, atol=1e-6, msg=name)
 
 
+def test_two_processes_keep_the_weights_moving_average_on_rank_0(dataset: str, tmp_path: Path) -> None:
+    """With ema_decay under two processes the saved model is rank 0's average (decay 1/10 after one step: 0.1 x
+    the first weights + 0.9 x the trained ones) and the resumable state holds it."""
+    outcome = _launch_two(replace(_config(dataset, tmp_path / "two", steps=1), ema_decay=0.99))
+    assert outcome == {0: "finished", 1: "finished"}
+    state = torch.load(tmp_path / "two" / TRAIN_STATE, weights_only=True)
+    torch.manual_seed(0)
+    first = train_module.DenseObjectNet("resnet-lite", 3).state_dict()
+    average = load_checkpoint(tmp_path / "two" / "model.safetensors")[0].state_dict()
+    for name, trained in state["model"].items():
+        if trained.is_floating_point():
+            expected = 0.1 * first[name] + 0.9 * trained
+            torch.testing.assert_close(average[name], expected, rtol=1e-5, atol=1e-6, msg=name)
+            torch.testing.assert_close(state["ema"][name], average[name], rtol=0, atol=0, msg=name)
+
+
 def test_a_process_that_dies_keeps_the_checkpoint_and_torchrun_resumes(
     dataset: str, one_process: Path, tmp_path: Path
 ) -> None:

@@ -620,8 +620,9 @@ class _TrainingRun:
         )
         self.scaler = torch.amp.GradScaler(device.type) if amp_dtype == torch.float16 else None
         # The average starts from the network's first weights (random, pretrained or fine-tuned from; set again in
-        # ``open_run_dir``) or from the resumed state's average (``restore``).
-        self.ema_model = _frozen_copy(self.model) if config.ema_decay > 0 else None
+        # ``open_run_dir``) or from the resumed state's average (``restore``). Only rank 0 writes checkpoints, so
+        # only rank 0 keeps it.
+        self.ema_model = _frozen_copy(self.model) if config.ema_decay > 0 and launch.is_main else None
         self.start_step = 0
         # Training time and images of earlier sessions of a resumed run; None when unknown.
         self.earlier_seconds: float | None = 0.0
