@@ -119,6 +119,12 @@ def test_rings_pair_by_spacing_and_tried_grasps_go_last():
     low = GraspCandidate(np.array([0.01, 0.1, 0.02, 0], np.float32), "across", 0.0, True, 1)
     assert rank_grasps([low, high], estimates)[0] is high  # the top of the pile first
     assert rank_grasps([low, high], estimates, failed_actions=[high.action])[0] is low
+    # Clear fingers come before the kind: a neighbour under a finger of the across grasp (below CROWDED) puts a
+    # clear grasp along the axis first; with both clear, across wins.
+    near_neighbour = GraspCandidate(np.array([0.01, 0, 0.05, 0], np.float32), "across", 0.2, True, 0)
+    along = GraspCandidate(np.array([0.01, 0, 0.05, 1.57], np.float32), "along", 0.0, True, 0)
+    assert rank_grasps([near_neighbour, along], estimates)[0] is along
+    assert rank_grasps([along, high], estimates)[0] is high
 
 
 def _config(**kwargs):
