@@ -48,7 +48,7 @@ def multi_part_net(bin_data, tmp_path_factory) -> str:
     out = tmp_path_factory.mktemp("run") / "edge"
     config = TrainConfig(
         method="supervised-edge", data=str(bin_data.root), out=str(out), steps=2, batch_size=2, crop_size=(64, 48),
-        device="cpu", threads=1, checkpoint_every=100,
+        device="cpu", threads=1, checkpoint_every=100, part_layout="dataset",
     )  # fmt: skip
     train(config, progress=False)
     return str(out / "model.safetensors")
@@ -142,6 +142,12 @@ def test_identity_layout_targets_keep_each_parts_whole_field(bin_data):
     stored = load_part_space(bin_data)
     targets = BinTargets(bin_data, "geometric", layout="identity")
     space = targets.space
+    # "auto" is the identity layout for the supervised variants of several parts; "dataset" and the mask variant
+    # keep the dataset's corners.
+    auto = BinTargets(bin_data, "edge")
+    assert (auto.layout, auto.space.layout, auto.space.dim) == ("identity", "identity", 4)
+    assert BinTargets(bin_data, "edge", layout="dataset").space.layout == stored.layout == "corners"
+    assert BinTargets(bin_data, "mask").space.layout == "corners"
     assert (space.layout, space.dim, space.field_dim, space.names) == ("identity", 4, 3, ("toolcap", "shaft"))
     target, mask = targets.frame(0, 0)
     assert target.shape == (48, 64, 4)
@@ -213,7 +219,9 @@ def test_part_layout_refusals_are_one_line(bin_data, tmp_path, capsys, method, e
     with pytest.raises(DatasetError, match="does not support the mask variant"):
         BinTargets(bin_data, "mask", layout="identity")
     config = TrainConfig(method="supervised-edge", data=str(bin_data.root), out=str(out), part_layout="corners")
-    with pytest.raises(DonGymError, match=r"part_layout 'corners' is unknown; expected one of \['auto', 'identity'\]"):
+    with pytest.raises(
+        DonGymError, match=r"part_layout 'corners' is unknown; expected one of \['auto', 'identity', 'dataset'\]"
+    ):
         train(config, progress=False)
     assert not out.exists()
 

@@ -7,6 +7,7 @@ import argparse
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     from don_gym.cli import decay_rate
+    from don_gym.descriptors.multi_part import TRAINING_LAYOUT_CHOICES
     from don_gym.learning.methods import METHOD_DESCRIPTIONS, METHODS
 
     methods = "; ".join(f"{m}: {METHOD_DESCRIPTIONS[m]}" for m in METHODS)
@@ -134,12 +135,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--part-layout",
         default="auto",
-        choices=["auto", "identity"],
+        choices=list(TRAINING_LAYOUT_CHOICES),
         help="bin datasets of several parts, supervised and supervised-edge only: the descriptor space the network "
-        "learns. auto = the dataset's (every part's field shrunk into a region of its own, same D); identity = "
-        "every part's whole field plus one output channel for part identity (D + 1 channels), so a part's "
-        "descriptors stay as far apart as in a single-part network; use it when the parts' shrunk regions are "
-        "too small for the network's noise (docs/background.md, 'Several parts in one descriptor space')",
+        "learns. identity = every part's whole field plus one output channel for part identity (D + 1 channels), "
+        "so a part's descriptors stay as far apart as in a single-part network; dataset = the dataset's own "
+        "(every part's field shrunk into a region of its own, same D: about 0.43 of the distances for two parts); "
+        "auto = identity wherever it applies (not supervised-mask, whose targets keep the dataset's layout) "
+        "(docs/background.md, 'Several parts in one descriptor space')",
     )
     parser.add_argument("--resume", action="store_true", help="continue the run in --out")
     parser.set_defaults(run=run)

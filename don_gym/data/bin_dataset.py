@@ -51,10 +51,10 @@ from don_gym.descriptors import FIELD_MATCH_ATOL, DescriptorField
 from don_gym.descriptors.multi_part import (
     DEFAULT_PART_GAP,
     IDENTITY_LAYOUT,
-    LAYOUT_CHOICES,
     PartSpace,
     build_part_space,
     part_space_for,
+    training_layout,
 )
 from don_gym.errors import DatasetError, DonGymError
 from don_gym.geometry import invert_transform
@@ -445,21 +445,20 @@ def _own_descriptors(space: PartSpace, descriptor_image: np.ndarray, labels: np.
 class BinTargets:
     """Training targets of a bin dataset for a supervised variant (``make_instances_target`` of each frame).
 
-    ``"geometric"`` and ``"edge"`` train in the dataset's space (``part_space.json``). ``"mask"`` trains in a
-    space built from the same fields with the last dimension left to the mask channel
+    ``layout`` (:data:`~don_gym.descriptors.multi_part.TRAINING_LAYOUT_CHOICES`, resolved by
+    :func:`~don_gym.descriptors.multi_part.training_layout`): ``"identity"`` trains ``"geometric"`` and ``"edge"``
+    in the identity layout of the dataset's fields (one dimension more: each part's whole field plus its identity
+    coordinate), the stored targets moved into it; it refuses ``"mask"``. ``"dataset"`` trains them in the
+    dataset's own space (``part_space.json``). ``"auto"`` is ``"identity"`` wherever it applies. ``"mask"`` trains
+    in a space built from the same fields with the last dimension left to the mask channel
     (:func:`~don_gym.descriptors.multi_part.build_part_space` with ``mask_dim=-1``), the stored targets moved
-    into it. ``layout="identity"`` trains ``"geometric"`` and ``"edge"`` in the identity layout of the same
-    fields (one dimension more: each part's whole field plus its identity coordinate), the stored targets moved
-    into it likewise; it refuses ``"mask"``. :attr:`space` is the one the network learns (its checkpoint records
-    it; the network outputs its :attr:`~PartSpace.dim` channels), :attr:`background` its background (the
-    targets' off every instance).
+    into it. :attr:`space` is the one the network learns (its checkpoint records it; the network outputs its
+    :attr:`~PartSpace.dim` channels), :attr:`background` its background (the targets' off every instance).
     """
 
     def __init__(
         self, data: DONDataset, variant: str, edge_width_px: float | None = None, layout: str = "auto"
     ) -> None:
-        if layout not in LAYOUT_CHOICES:
-            raise DatasetError(f"part layout {layout!r} is unknown; expected one of {list(LAYOUT_CHOICES)}")
         if layout == IDENTITY_LAYOUT and variant == "mask":
             raise DatasetError(
                 "part layout 'identity' does not support the mask variant (supervised-mask), whose mask channel "
@@ -468,12 +467,18 @@ class BinTargets:
         self.data = data
         self.variant = variant
         self.stored_space = load_part_space(data)
-        if layout == IDENTITY_LAYOUT and len(self.stored_space.parts) < 2:
+        n_parts = len(self.stored_space.parts)
+        if layout == IDENTITY_LAYOUT and n_parts < 2:
             raise DatasetError(
                 f"part layout 'identity' (--part-layout) is for several parts; {data.root} holds one part "
                 f"({self.stored_space.names[0]!r}), which trains in its own space (--part-layout auto)"
             )
-        if variant == "mask" or layout == IDENTITY_LAYOUT:
+        try:
+            #: The layout the targets are in: ``"identity"`` or ``"dataset"``.
+            self.layout = training_layout(layout, n_parts, self.stored_space.gap, variant == "mask")
+        except DonGymError as exc:
+            raise DatasetError(str(exc)) from None
+        if variant == "mask" or self.layout == IDENTITY_LAYOUT:
             fields = load_part_fields(data)
             self.space = build_part_space(
                 list(self.stored_space.names),
@@ -481,7 +486,7 @@ class BinTargets:
                 [p.signature for p in self.stored_space.parts],
                 gap=self.stored_space.gap,
                 mask_dim=-1 if variant == "mask" else None,
-                layout=layout,
+                layout=IDENTITY_LAYOUT if self.layout == IDENTITY_LAYOUT else "auto",
             )
         else:
             self.space = self.stored_space

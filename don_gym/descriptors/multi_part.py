@@ -37,6 +37,10 @@ LAYOUTS = ("single", "corners", "grid", "identity")
 IDENTITY_LAYOUT = "identity"
 #: Values of :func:`build_part_space`'s ``layout`` argument.
 LAYOUT_CHOICES = ("auto", IDENTITY_LAYOUT)
+#: The layout a bin dataset stored its targets in (``part_space.json``: ``"corners"`` or ``"grid"``).
+DATASET_LAYOUT = "dataset"
+#: Layouts a supervised network of several parts can learn (:func:`training_layout`).
+TRAINING_LAYOUT_CHOICES = ("auto", IDENTITY_LAYOUT, DATASET_LAYOUT)
 
 
 @dataclass(frozen=True)
@@ -533,6 +537,25 @@ def _identity_space(
         for k, (name, signature) in enumerate(zip(names, signatures, strict=True))
     ]
     return PartSpace(tuple(regions), background, gap, IDENTITY_LAYOUT, None)
+
+
+def training_layout(layout: str, n_parts: int, gap: float, mask_variant: bool) -> str:
+    """The layout a supervised network of ``n_parts`` parts learns for a requested ``layout``
+    (:data:`TRAINING_LAYOUT_CHOICES`): ``"identity"`` or ``"dataset"``.
+
+    ``"auto"`` is ``"identity"`` wherever it applies (two parts or more, not the mask variant, whose mask channel
+    would replace a descriptor dimension, and ``1 / n_parts >= gap``, the separation the identity coordinate
+    guarantees), else ``"dataset"``: every part's whole field keeps its descriptors as far apart as a single-part
+    network's, against about 0.43 of that for two parts shrunk into corners (docs/background.md, "Several parts in
+    one descriptor space"). An explicit layout is returned as asked; whether it fits is checked where the space
+    is built.
+    """
+    if layout not in TRAINING_LAYOUT_CHOICES:
+        raise DonGymError(f"part layout {layout!r} is unknown; expected one of {list(TRAINING_LAYOUT_CHOICES)}")
+    if layout != "auto":
+        return layout
+    fits = n_parts >= 2 and not mask_variant and 1.0 / n_parts >= gap
+    return IDENTITY_LAYOUT if fits else DATASET_LAYOUT
 
 
 def part_space_for(

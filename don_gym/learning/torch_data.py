@@ -101,8 +101,8 @@ class SupervisedFrames(Dataset):
     (``supervised-mask``). With ``crop_size`` (width, height), each item is a window cut by
     :func:`crop_window` (object-centred with probability ``1 - background_crop_probability``).
     ``part_layout`` is the layout of a bin dataset's descriptor space to train in (:class:`BinTargets`):
-    ``"auto"`` the dataset's own, ``"identity"`` one more dimension for part identity; a dataset of one
-    part accepts only ``"auto"``.
+    ``"identity"`` one more dimension for part identity, ``"dataset"`` the dataset's own, ``"auto"`` identity
+    wherever it applies; a dataset of one part accepts only ``"auto"``.
     """
 
     def __init__(

@@ -38,7 +38,7 @@ import torch
 from tqdm.auto import tqdm
 
 from don_gym.data.dataset import DEPTH_SOURCES, DONDataset
-from don_gym.descriptors.multi_part import IDENTITY_LAYOUT, LAYOUT_CHOICES
+from don_gym.descriptors.multi_part import IDENTITY_LAYOUT, TRAINING_LAYOUT_CHOICES
 from don_gym.errors import DonGymError
 from don_gym.io import DirectoryLock, atomic_path, check_output_dir, write_text_atomic
 from don_gym.learning.augment import AugmentConfig
@@ -125,9 +125,10 @@ class TrainConfig:
     ``"cuda:N"``; ``precision`` ``"auto"`` is bf16 autocast on GPUs that support it, else fp16
     with a gradient scaler, and fp32 on the CPU. ``backend`` (``"auto"``: NCCL on GPUs, gloo on
     CPUs) is the torch.distributed backend under torchrun. ``part_layout`` (supervised methods on bin datasets of
-    several parts only) is the descriptor space's layout the network learns: ``"auto"`` the dataset's own,
-    ``"identity"`` every part's whole field plus one output channel for part identity
-    (:func:`~don_gym.descriptors.multi_part.build_part_space`; not with ``supervised-mask``).
+    several parts only) is the descriptor space's layout the network learns: ``"identity"`` every part's whole field
+    plus one output channel for part identity (:func:`~don_gym.descriptors.multi_part.build_part_space`; not with
+    ``supervised-mask``), ``"dataset"`` the dataset's own (each part's field shrunk into a region of its own),
+    ``"auto"`` identity wherever it applies (:func:`~don_gym.descriptors.multi_part.training_layout`).
     ``init_path`` fine-tunes: the run starts from the weights of a don_gym checkpoint of the same method, arch,
     part and descriptor space (e.g. a shipped network, to adapt it to new data) instead of random ones.
     ``hard_object_fraction`` and ``hard_background_fraction`` (supervised methods) add to the loss's object and
@@ -240,8 +241,10 @@ def validate_config(config: TrainConfig) -> None:
         raise DonGymError(f"precision {config.precision!r} is unknown; expected one of {list(PRECISIONS)}")
     if config.backend not in BACKENDS:
         raise DonGymError(f"backend {config.backend!r} is unknown; expected one of {list(BACKENDS)}")
-    if config.part_layout not in LAYOUT_CHOICES:
-        raise DonGymError(f"part_layout {config.part_layout!r} is unknown; expected one of {list(LAYOUT_CHOICES)}")
+    if config.part_layout not in TRAINING_LAYOUT_CHOICES:
+        raise DonGymError(
+            f"part_layout {config.part_layout!r} is unknown; expected one of {list(TRAINING_LAYOUT_CHOICES)}"
+        )
     if config.part_layout != "auto" and not is_supervised(config.method):
         raise DonGymError(
             f"part_layout {config.part_layout!r} is for the supervised methods; {config.method} learns a descriptor "
