@@ -297,9 +297,9 @@ def rank_grasps(
             times_tried(candidate.action, failed_actions),
             not candidate.walls_clear,
             candidate.obstruction > CROWDED,
-            # Clear fingers before the kind: on the development piles a third of the across grasps with a
-            # neighbour under a finger (walls clear, obstruction up to CROWDED) failed to lift, while every clear
-            # grasp of any kind lifted, and an along grasp is placed as an across one is.
+            # Clear fingers before the kind: on the 16 development piles with a failed lift, a third of the across
+            # grasps with a neighbour under a finger (walls clear, obstruction up to CROWDED) failed to lift, while
+            # every clear grasp of any kind lifted, and an along grasp is placed as an across one is.
             not candidate.clear,
             GRASP_KIND_PREFERENCE.index(candidate.kind),
             -round(float(candidate.action[2]) * 100.0),  # centimetres: parts at one level rank by what follows
