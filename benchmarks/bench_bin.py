@@ -1,18 +1,18 @@
 """Piles of 3 toolcaps + 2 shafts in a bin, D435 wrist camera: clearing them, and tracking in them.
 
 Clearing (``--only clearing``). Per method (the oracle with the true poses of the instances it sees, the descriptor
-agent on the pile's optimal descriptors, the toolcap's shipped networks, and the multi-part networks given with
-``--multi-part``), the same seeded piles are picked one instance per attempt, target toolcap, a part lifted standing
-regrasped at the station (:func:`don_gym.evaluation.bin_benchmark.run_bin_benchmark`): placed per target instance
-(the headline), picks and lift success per attempt, piles fully placed, give-ups, wrong-part lifts, flips, regrasps
-and their success, each with its 95% Wilson interval, and placements per hour of simulated time (motion and the
-method's measured perception charged), with each method's ratios to the oracle on the same piles
-(:mod:`don_gym.evaluation.bin_metrics`). The piles are the bin test piles (from
-:data:`don_gym.evaluation.splits.BIN_TEST_SEED`, used for no decision); ``--split dev`` runs the development piles (from
-:data:`~don_gym.evaluation.splits.BIN_DEVELOPMENT_SEED`) into section ``bin-dev``. Records RESULTS.md section ``bin``
-with the targets checked (``TARGET_*`` of the benchmark module): the oracle places >= 95% of the target instances
-and >= 80% per attempt at >= 300 placements per hour; a supervised network of several parts reaches >= 0.9x the
-oracle's placed-per-target rate and pace on the same piles, wrong-part lifts <= 2% of lifts, gives up on <= 10% of
+agent on the pile's optimal descriptors, the toolcap's shipped networks, and the networks of several parts:
+``--multi-part``, by default the shipped ones), the same seeded piles are picked one instance per attempt, target
+toolcap, a part lifted standing regrasped at the station (:func:`don_gym.evaluation.bin_benchmark.run_bin_benchmark`):
+placed per target instance (the headline), picks and lift success per attempt, piles fully placed, give-ups,
+wrong-part lifts, flips, regrasps and their success, each with its 95% Wilson interval, and placements per hour of
+simulated time (motion and the method's measured perception charged), with each method's ratios to the oracle on the
+same piles (:mod:`don_gym.evaluation.bin_metrics`). The piles are the bin test piles (from
+:data:`don_gym.evaluation.splits.BIN_TEST_SEED`, used for no decision); ``--split dev`` runs the development piles
+(from :data:`~don_gym.evaluation.splits.BIN_DEVELOPMENT_SEED`) into section ``bin-dev``. Records RESULTS.md section
+``bin`` with the targets checked (``TARGET_*`` of the benchmark module): the oracle places >= 95% of the target
+instances and >= 80% per attempt at >= 300 placements per hour; a supervised network of several parts reaches >= 0.9x
+the oracle's placed-per-target rate and pace on the same piles, wrong-part lifts <= 2% of lifts, gives up on <= 10% of
 piles. The chart goes to ``benchmarks/figures/bin_rates.png``.
 
 Tracking (``--only tracking``). Datasets of piles (:func:`don_gym.evaluation.datasets.build_evaluation_datasets`), one
@@ -36,9 +36,9 @@ each with its Wilson interval.
 
 Clearing and tracking run by default; datasets and raw outputs go to ``--work``.
 
-    python benchmarks/bench_bin.py --multi-part runs/bin/model.safetensors   # test split: "bin", "bin-tracking"
-    python benchmarks/bench_bin.py --only tracking --multi-part runs/bin/model.safetensors   # "bin-tracking" only
-    python benchmarks/bench_bin.py --only clearing --multi-part runs/bin/model.safetensors   # "bin" only
+    python benchmarks/bench_bin.py                  # test split, the shipped networks: "bin", "bin-tracking"
+    python benchmarks/bench_bin.py --only tracking  # "bin-tracking" only
+    python benchmarks/bench_bin.py --only clearing --multi-part runs/bin/model.safetensors   # "bin", another network
     python benchmarks/bench_bin.py --quick        # 2 development piles, the oracles, 160x120, temp dir, records nothing
     python benchmarks/bench_bin.py --split dev    # development piles and seeds: "bin-dev", "bin-tracking-dev"
     python benchmarks/bench_bin.py --only regrasp --split dev   # the regrasp station: "bin-regrasp-dev"
@@ -75,7 +75,7 @@ from don_gym.evaluation.splits import BIN_DEVELOPMENT_SEED, BIN_TEST_SEED, SPENT
 from don_gym.evaluation.tracking import TrackingConfig, evaluate_tracking_per_part
 from don_gym.objects import load_object  # noqa: E402
 from don_gym.stats import BOOTSTRAP_RESAMPLES, format_estimate  # noqa: E402
-from don_gym.zoo import read_don_metadata, shipped_names_for  # noqa: E402
+from don_gym.zoo import read_don_metadata, shipped_multi_part_names, shipped_names_for  # noqa: E402
 
 PARTS = (("toolcap", 3), ("shaft", 2))
 TARGET = "toolcap"
@@ -347,7 +347,8 @@ def tracking(args: argparse.Namespace, split: str) -> None:
             "(for a network, but for its outer 16 pixels, where its output saw zero padding) and the predicted point "
             f"back-projects the frame's {SENSOR} depth with the true camera pose. "
             "Methods: the oracle (optimal descriptors rendered for every instance of the part), the part's shipped "
-            "single-part networks, and the networks of several parts given with `--multi-part`. *Any instance*: "
+            "single-part networks, and the networks of several parts (`--multi-part`, by default the shipped ones). "
+            "*Any instance*: "
             "the error to the same point on the nearest instance of the part, since a part's descriptors are alike "
             "on its identical instances; *mod symmetry*: the distance between the rings the predicted and true "
             "points sweep about the part's axis. Intervals: 95%, bootstrap over reference instances (the scenes "
@@ -374,9 +375,10 @@ def main() -> None:
     parser.add_argument(
         "--multi-part",
         nargs="*",
-        default=[],
+        default=None,
         metavar="CHECKPOINT",
-        help="networks of several parts (trained on bin datasets) benchmarked beside the single-part ones",
+        help="networks of several parts (trained on bin datasets) benchmarked beside the single-part ones (default: "
+        "the shipped ones, don_gym.zoo.shipped_multi_part_names(), except with --quick; give none to leave them out)",
     )
     parser.add_argument(
         "--split",
@@ -422,6 +424,8 @@ def main() -> None:
         "--work", default="bench_work/bin", help="folder for datasets and raw outputs (default: bench_work/bin)"
     )
     args = parser.parse_args()
+    if args.multi_part is None:
+        args.multi_part = [] if args.quick else shipped_multi_part_names()
     split = args.split or ("dev" if args.quick else "test")
     freeze_commit_description()
     if args.only in (None, "clearing"):

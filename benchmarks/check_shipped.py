@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from don_gym.learning.checkpoints import read_checkpoint_metadata
-from don_gym.zoo import SHIPPED_DIR, shipped_names
+from don_gym.zoo import SHIPPED_DIR, shipped_names, shipped_path
 
 MANIFEST_PATH = SHIPPED_DIR / "MANIFEST.json"
 FINGERPRINTS_PATH = SHIPPED_DIR / "fingerprints.npz"
@@ -45,6 +45,7 @@ CONCERNS: dict[str, tuple[str, ...]] = {
     "descriptor fields": ("don_gym.descriptors", "don_gym.objects"),
     # What the networks were trained on: recorded scenes, simulated depth, rendered targets, the format.
     "training data": (
+        "don_gym.data.bin_dataset",
         "don_gym.data.build",
         "don_gym.data.dataset",
         "don_gym.data.fusion",
@@ -67,6 +68,7 @@ CONCERNS: dict[str, tuple[str, ...]] = {
     # How their descriptors become keypoints and a grasp.
     "use": (
         "don_gym.agents.axis_grasp",
+        "don_gym.agents.bin_agent",
         "don_gym.perception.descriptor_sources",
         "don_gym.perception.keypoints",
         "don_gym.wrappers.descriptors",
@@ -243,7 +245,8 @@ def network_fingerprint(name: str, rgb: np.ndarray) -> np.ndarray:
     from don_gym.objects import load_object
     from don_gym.perception.descriptor_sources import load_descriptor_source
 
-    source = load_descriptor_source(name, load_object(name.split("/", 1)[0]))
+    # A network of several parts is fingerprinted on the first part of its space, which its metadata names.
+    source = load_descriptor_source(name, load_object(read_checkpoint_metadata(shipped_path(name)).object_name))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the fixed image is not the size the network was trained at
         image = source.descriptor_image({"rgb": rgb})

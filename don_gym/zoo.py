@@ -3,7 +3,8 @@
 Short names are ``"<object>/<method>"``, e.g. ``"toolcap/supervised-edge"``; the files
 live in ``don_gym/shipped/<object>/<method>.safetensors`` and are reproduced from
 scratch by ``benchmarks/train_shipped.py`` (command, seeds, times and final losses in
-``benchmarks/RESULTS.md``).
+``benchmarks/RESULTS.md``). Networks of several parts, trained on bin piles, are ``"bin/<method>"``
+(:func:`shipped_multi_part_names`; made by the commands in docs/bin.md).
 """
 
 from __future__ import annotations
@@ -27,6 +28,12 @@ SHIPPED_DIR = Path(__file__).resolve().parent / "shipped"
 def shipped_names() -> list[str]:
     """Short names of the networks in this installation, e.g. ``["shaft/self-supervised", ...]``."""
     return sorted(f"{p.parent.name}/{p.stem}" for p in SHIPPED_DIR.glob("*/*.safetensors"))
+
+
+def shipped_multi_part_names() -> list[str]:
+    """Short names of the shipped networks of several parts (trained on bin piles, e.g.
+    ``"bin/supervised-edge"``): each is for every part of its descriptor space (its checkpoint's ``part_space``)."""
+    return [name for name in shipped_names() if read_checkpoint_metadata(shipped_path(name)).part_space]
 
 
 def shipped_names_for(part: ObjectModel) -> list[str]:
