@@ -371,6 +371,14 @@ def tracking(args: argparse.Namespace, split: str) -> None:
         record_section("bin-tracking-dev", title, body, after="bin-tracking")
 
 
+def multi_part_networks(given: list[str] | None, quick: bool) -> list[str]:
+    """The networks of several parts to benchmark: those ``given`` (``--multi-part``, none: an empty list), else the
+    shipped ones (:func:`~don_gym.zoo.shipped_multi_part_names`), except in a ``quick`` run."""
+    if given is not None:
+        return list(given)
+    return [] if quick else shipped_multi_part_names()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument(
@@ -425,8 +433,7 @@ def main() -> None:
         "--work", default="bench_work/bin", help="folder for datasets and raw outputs (default: bench_work/bin)"
     )
     args = parser.parse_args()
-    if args.multi_part is None:
-        args.multi_part = [] if args.quick else shipped_multi_part_names()
+    args.multi_part = multi_part_networks(args.multi_part, args.quick)
     split = args.split or ("dev" if args.quick else "test")
     freeze_commit_description()
     if args.only in (None, "clearing"):

@@ -42,3 +42,13 @@ def test_target_compares_with_the_better_supervised_single_part_network() -> Non
     assert "not checked" in line and "--multi-part" in line
     (line,) = bench_bin.tracking_target(_summary({"toolcap/self-supervised": 1.0, MULTI: 4.0}), SINGLES, [MULTI])
     assert "no single-part supervised network" in line
+
+
+def test_the_shipped_networks_of_several_parts_are_the_default() -> None:
+    from don_gym.zoo import shipped_multi_part_names
+
+    assert bench_bin.multi_part_networks(None, quick=False) == shipped_multi_part_names()
+    assert "bin/supervised-edge" in shipped_multi_part_names()
+    assert bench_bin.multi_part_networks(None, quick=True) == []  # --quick stays a minute with the oracles
+    assert bench_bin.multi_part_networks([], quick=False) == []  # "--multi-part" with none leaves them out
+    assert bench_bin.multi_part_networks([MULTI], quick=True) == [MULTI]
