@@ -120,11 +120,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def default_methods(part: ObjectModel) -> list[str]:
-    """``oracle`` and those of the paper's three networks that are shipped for ``part`` (matched by its geometry)."""
+    """``oracle`` and those of the paper's three networks that are shipped for ``part`` (matched by its geometry;
+    the part's own networks, not those of several parts)."""
     from don_gym.evaluation.grasp_benchmark import DEFAULT_METHODS
-    from don_gym.zoo import shipped_names_for
+    from don_gym.zoo import shipped_multi_part_names, shipped_names_for
 
-    by_method = {name.split("/", 1)[1]: name for name in shipped_names_for(part)}
+    several = set(shipped_multi_part_names())
+    by_method = {name.split("/", 1)[1]: name for name in shipped_names_for(part) if name not in several}
     methods = [m.split("/", 1)[-1] for m in DEFAULT_METHODS]
     return [by_method.get(m, m) for m in methods if m == "oracle" or m in by_method]
 
