@@ -341,19 +341,19 @@ def test_rendering_bad_input_is_refused_naming_it(scene):
 
 def test_training_layout_is_identity_wherever_it_applies():
     # Two or more parts, not the mask variant, 1/K at least the gap: the whole fields plus an identity channel.
-    assert training_layout("auto", 2, 0.25, mask_variant=False) == "identity"
-    assert training_layout("auto", 4, 0.25, mask_variant=False) == "identity"
+    assert training_layout("auto", ["a", "b"], 0.25, mask_variant=False) == "identity"
+    assert training_layout("auto", ["a", "b", "c", "d"], 0.25, mask_variant=False) == "identity"
     # Otherwise the dataset's own layout: one part, the mask variant, or more parts than the gap lets apart.
-    assert training_layout("auto", 1, 0.25, mask_variant=False) == "dataset"
-    assert training_layout("auto", 2, 0.25, mask_variant=True) == "dataset"
-    assert training_layout("auto", 5, 0.25, mask_variant=False) == "dataset"
+    assert training_layout("auto", ["a"], 0.25, mask_variant=False) == "dataset"
+    assert training_layout("auto", ["a", "b"], 0.25, mask_variant=True) == "dataset"
+    assert training_layout("auto", ["a", "b", "c", "d", "e"], 0.25, mask_variant=False) == "dataset"
     # An explicit layout is returned as asked.
-    assert training_layout("dataset", 2, 0.25, mask_variant=False) == "dataset"
-    assert training_layout("identity", 2, 0.25, mask_variant=False) == "identity"
+    assert training_layout("dataset", ["a", "b"], 0.25, mask_variant=False) == "dataset"
+    assert training_layout("identity", ["a", "b"], 0.25, mask_variant=False) == "identity"
     with pytest.raises(
         DonGymError, match=r"part layout 'corners' is unknown; expected one of \['auto', 'identity', 'dataset'\]"
     ):
-        training_layout("corners", 2, 0.25, mask_variant=False)
+        training_layout("corners", ["a", "b"], 0.25, mask_variant=False)
 
 
 @pytest.mark.parametrize("count", [2, 3, 4])

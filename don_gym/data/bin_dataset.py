@@ -467,15 +467,14 @@ class BinTargets:
         self.data = data
         self.variant = variant
         self.stored_space = load_part_space(data)
-        n_parts = len(self.stored_space.parts)
-        if layout == IDENTITY_LAYOUT and n_parts < 2:
+        if layout == IDENTITY_LAYOUT and len(self.stored_space.parts) < 2:
             raise DatasetError(
                 f"part layout 'identity' (--part-layout) is for several parts; {data.root} holds one part "
                 f"({self.stored_space.names[0]!r}), which trains in its own space (--part-layout auto)"
             )
         try:
             #: The layout the targets are in: ``"identity"`` or ``"dataset"``.
-            self.layout = training_layout(layout, n_parts, self.stored_space.gap, variant == "mask")
+            self.layout = training_layout(layout, self.stored_space.names, self.stored_space.gap, variant == "mask")
         except DonGymError as exc:
             raise DatasetError(str(exc)) from None
         if variant == "mask" or self.layout == IDENTITY_LAYOUT:

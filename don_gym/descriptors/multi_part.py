@@ -504,6 +504,27 @@ def build_part_space(
     return PartSpace(tuple(regions), background, gap, layout, mask_dim)
 
 
+def _identity_refusal(names: Sequence[str], gap: float, mask_dim: int | None) -> str | None:
+    """Why the ``"identity"`` layout does not apply to parts ``names`` with ``gap`` and ``mask_dim``, or None."""
+    n_parts = len(names)
+    if mask_dim is not None:
+        return (
+            f"layout='identity' with mask_dim={mask_dim}: the mask variant is not supported with the identity "
+            "layout; use layout='auto'"
+        )
+    if n_parts < 2:
+        return (
+            f"layout='identity' needs at least 2 parts, got {n_parts} ({names[0]!r}); a single part keeps its "
+            "own space (layout='auto')"
+        )
+    if 1.0 / n_parts < gap:
+        return (
+            f"layout='identity': {n_parts} parts are 1/K = {1.0 / n_parts:.3f} apart along the identity "
+            f"dimension, less than gap={gap}; at most {math.floor(1.0 / gap + 1e-9)} parts fit with this gap"
+        )
+    return None
+
+
 def _identity_space(
     names: list[str],
     arrays: list[np.ndarray],
@@ -512,22 +533,10 @@ def _identity_space(
     mask_dim: int | None,
 ) -> PartSpace:
     """:func:`build_part_space`'s ``"identity"`` layout, for checked inputs."""
+    refusal = _identity_refusal(names, gap, mask_dim)
+    if refusal is not None:
+        raise DonGymError(refusal)
     n_parts, dim = len(names), arrays[0].shape[1]
-    if mask_dim is not None:
-        raise DonGymError(
-            f"layout='identity' with mask_dim={mask_dim}: the mask variant is not supported with the identity "
-            "layout; use layout='auto'"
-        )
-    if n_parts < 2:
-        raise DonGymError(
-            f"layout='identity' needs at least 2 parts, got {n_parts} ({names[0]!r}); a single part keeps its "
-            "own space (layout='auto')"
-        )
-    if 1.0 / n_parts < gap:
-        raise DonGymError(
-            f"layout='identity': {n_parts} parts are 1/K = {1.0 / n_parts:.3f} apart along the identity "
-            f"dimension, less than gap={gap}; at most {math.floor(1.0 / gap + 1e-9)} parts fit with this gap"
-        )
     background = np.zeros(dim + 1, dtype=np.float32)
     # Identity 0 already keeps the background 1/K from every part; in the fields' dimensions it is put where
     # a single part's background is, furthest from every part's descriptors, for what margin that adds.
@@ -539,22 +548,22 @@ def _identity_space(
     return PartSpace(tuple(regions), background, gap, IDENTITY_LAYOUT, None)
 
 
-def training_layout(layout: str, n_parts: int, gap: float, mask_variant: bool) -> str:
-    """The layout a supervised network of ``n_parts`` parts learns for a requested ``layout``
+def training_layout(layout: str, names: Sequence[str], gap: float, mask_variant: bool) -> str:
+    """The layout a supervised network of the parts ``names`` learns for a requested ``layout``
     (:data:`TRAINING_LAYOUT_CHOICES`): ``"identity"`` or ``"dataset"``.
 
-    ``"auto"`` is ``"identity"`` wherever it applies (two parts or more, not the mask variant, whose mask channel
-    would replace a descriptor dimension, and ``1 / n_parts >= gap``, the separation the identity coordinate
-    guarantees), else ``"dataset"``: every part's whole field keeps its descriptors as far apart as a single-part
-    network's, against about 0.43 of that for two parts shrunk into corners (docs/background.md, "Several parts in
-    one descriptor space"). An explicit layout is returned as asked; whether it fits is checked where the space
-    is built.
+    ``"auto"`` is ``"identity"`` wherever :func:`build_part_space` would build it (two parts or more, not the mask
+    variant, whose mask channel would replace a descriptor dimension, and ``1 / K >= gap``, the separation the
+    identity coordinate guarantees), else ``"dataset"``: every part's whole field keeps its descriptors as far
+    apart as a single-part network's, against about 0.43 of that for two parts shrunk into corners
+    (docs/background.md, "Several parts in one descriptor space"). An explicit layout is returned as asked;
+    whether it fits is checked where the space is built.
     """
     if layout not in TRAINING_LAYOUT_CHOICES:
         raise DonGymError(f"part layout {layout!r} is unknown; expected one of {list(TRAINING_LAYOUT_CHOICES)}")
     if layout != "auto":
         return layout
-    fits = n_parts >= 2 and not mask_variant and 1.0 / n_parts >= gap
+    fits = _identity_refusal(names, gap, -1 if mask_variant else None) is None
     return IDENTITY_LAYOUT if fits else DATASET_LAYOUT
 
 
