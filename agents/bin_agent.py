@@ -90,6 +90,9 @@ TRIED_YAW_RAD = float(np.deg2rad(25.0))
 #: Candidate ring matches: descriptor distance below this fraction of the distance between the two
 #: reference descriptors (the two rings), so a match is nearer its own ring than halfway to the other.
 DEFAULT_MATCH_FRACTION = 0.4
+#: When no instance is found at the match fraction, the search runs once more at this looser one: a pile where the
+#: network's matches all fall short would otherwise end with the agent giving up.
+DEFAULT_FALLBACK_MATCH_FRACTION = 0.6
 #: Two rings pair into an instance when their axis points lie the rings' spacing apart within this
 #: fraction of it (or :data:`PAIR_TOLERANCE_MIN_M`, the larger).
 PAIR_TOLERANCE_FRACTION = 0.3
@@ -534,6 +537,8 @@ class BinAxisGraspAgent(_BinAgentBase):
             parts scales it by :attr:`~don_gym.perception.descriptor_sources.DescriptorSource.descriptor_scale`)
             that moves
             each candidate to its ring's arc middle.
+        fallback_match_fraction: when no instance is found, the search is run once more at this looser fraction
+            (None: never), before the agent gives up.
     """
 
     def __init__(
@@ -544,6 +549,7 @@ class BinAxisGraspAgent(_BinAgentBase):
         fractions: tuple[float, float] = DEFAULT_AXIS_FRACTIONS,
         match_fraction: float = DEFAULT_MATCH_FRACTION,
         temperature: float = DEFAULT_SOFT_TEMPERATURE,
+        fallback_match_fraction: float | None = DEFAULT_FALLBACK_MATCH_FRACTION,
     ) -> None:
         object_model = _target_model(env)
         if isinstance(model, (str, Path)) and str(model) == "oracle":
@@ -559,12 +565,21 @@ class BinAxisGraspAgent(_BinAgentBase):
         middle = reference_descriptors_for(source, [middle_ring_points(object_model, targets)], reference_frame)[0]
         if not (np.isfinite(match_fraction) and 0.0 < match_fraction <= 1.0):
             raise DonGymError(f"match_fraction={match_fraction!r}: expected a fraction in (0, 1]")
+        if fallback_match_fraction is not None and not (
+            np.isfinite(fallback_match_fraction) and match_fraction < fallback_match_fraction <= 1.0
+        ):
+            raise DonGymError(
+                f"fallback_match_fraction={fallback_match_fraction!r}: expected None or a fraction in "
+                f"(match_fraction={match_fraction!r}, 1]"
+            )
         self._setup_geometry(object_model, targets)
         self.source = source
         self.reference_descriptors = np.asarray(reference, dtype=np.float32)
         self.middle_descriptor = np.asarray(middle, dtype=np.float32)
-        self.match_threshold = float(match_fraction) * float(
-            np.linalg.norm(self.reference_descriptors[0] - self.reference_descriptors[1])
+        ring_distance = float(np.linalg.norm(self.reference_descriptors[0] - self.reference_descriptors[1]))
+        self.match_threshold = float(match_fraction) * ring_distance
+        self.fallback_threshold = (
+            None if fallback_match_fraction is None else float(fallback_match_fraction) * ring_distance
         )
         self.temperature = float(temperature)
         self._station_agent: Any = None
@@ -575,6 +590,15 @@ class BinAxisGraspAgent(_BinAgentBase):
 
     def estimates(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None) -> list[InstanceEstimate]:
         descriptor_image = self.source.descriptor_image(obs, info)
+        found = self._estimates_below(descriptor_image, obs, self.match_threshold)
+        if not found and self.fallback_threshold is not None:
+            found = self._estimates_below(descriptor_image, obs, self.fallback_threshold)
+        return found
+
+    def _estimates_below(
+        self, descriptor_image: np.ndarray, obs: Mapping[str, Any], threshold: float
+    ) -> list[InstanceEstimate]:
+        """The instances whose ring candidates match the reference descriptors closer than ``threshold``."""
         depth = np.asarray(obs["depth"], dtype=np.float32)
         intrinsics = CameraIntrinsics.from_array(obs["camera_intrinsics"])
         T_world_camera = np.asarray(obs["camera_pose"], dtype=np.float64)
@@ -587,7 +611,7 @@ class BinAxisGraspAgent(_BinAgentBase):
         for k in range(2):
             uv, distance = local_matches(
                 distances[k],
-                self.match_threshold,
+                threshold,
                 window_px,
                 self.temperature * self.source.descriptor_scale,
                 MAX_CANDIDATES_PER_RING,
@@ -599,7 +623,7 @@ class BinAxisGraspAgent(_BinAgentBase):
             match_distances.append(distance[ok] if len(uv) else distance)
         middle = descriptor_distances(descriptor_image, self.middle_descriptor[None])[0]
         found = pair_ring_candidates(
-            points, pixels, match_distances, depth, T_world_camera, self.targets, middle, self.match_threshold,
+            points, pixels, match_distances, depth, T_world_camera, self.targets, middle, threshold,
             floor_z_m=TABLE_TOP_Z_M,
         )  # fmt: skip
         if not found:

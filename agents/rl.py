@@ -37,6 +37,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from don_gym.agents.rl_demos import check_demonstration_settings, use_demonstrations
 from don_gym.agents.rl_envs import (
     ENV_MAKERS,
     VECTORIZE,
@@ -93,6 +94,7 @@ RUN_FILES = {
     "last_buffer": "replay_buffer_last.pkl",
     "last_curve": "curve_last.csv",
     "last_progress": "progress_last.json",
+    "demonstrations": "demonstrations.npz",
 }
 
 
@@ -356,7 +358,9 @@ def _resumed_state(run_path: Path, config: dict[str, Any]) -> tuple[LearningCurv
     if not (run_path / RUN_FILES["last_model"]).is_file():
         raise DonGymError(f"resume: {str(run_path)!r} holds no {RUN_FILES['last_model']} to resume from")
     saved = json.loads((run_path / RUN_FILES["config"]).read_text())
-    differs = [k for k in ("algorithm", "n_envs", "env_kwargs") if saved.get(k) != config[k]]
+    # A run saved before demonstrations existed had none.
+    saved.setdefault("demonstrations", {"episodes": 0, "bc_weight": 0.0})
+    differs = [k for k in ("algorithm", "n_envs", "env_kwargs", "demonstrations") if saved.get(k) != config[k]]
     if differs:
         raise DonGymError(f"resume: {str(run_path)!r} was a run with other {differs}; start a new run_dir")
     return LearningCurve.read_csv(run_path / RUN_FILES["last_curve"]), _wall_s_before(run_path, saved)
@@ -369,6 +373,30 @@ def _load_replay_buffer(model: Any, buffer: Path) -> None:
             # HER cuts the episode that was running at the save: the envs restart, as it assumes.
             warnings.filterwarnings("ignore", message="The last trajectory in the replay buffer")
             model.load_replay_buffer(buffer)
+
+
+def _run_config(
+    algorithm: str,
+    total_timesteps: int,
+    n_envs: int,
+    vectorize: str | None,
+    env_kwargs: dict[str, Any],
+    algo_kwargs: dict[str, Any],
+    seed: int,
+    demonstrations: tuple[int, float],
+) -> dict[str, Any]:
+    """A run's ``config.json``: its arguments, seeds and versions (stable-baselines3's added by the caller)."""
+    return {
+        "algorithm": algorithm,
+        "total_timesteps": int(total_timesteps),
+        "n_envs": int(n_envs),
+        "vectorize": vectorize,
+        "env_kwargs": _jsonable(env_kwargs),
+        "algo_kwargs": _jsonable({k: v for k, v in algo_kwargs.items() if k != "replay_buffer_class"}),
+        "seeds": {"algorithm": int(seed), "envs_first_reset": [int(seed) + i for i in range(int(n_envs))]},
+        "demonstrations": {"episodes": int(demonstrations[0]), "bc_weight": float(demonstrations[1])},
+        "versions": {"python": platform.python_version()},
+    }
 
 
 def train(
@@ -385,6 +413,8 @@ def train(
     vectorize: str | None = None,
     device: str = "cpu",
     don_device: str | None = None,
+    demonstrations: int = 0,
+    bc_weight: float = 0.0,
 ) -> RLTrainResult:
     """Train a baseline of :data:`ALGORITHMS` for ``total_timesteps`` env steps.
 
@@ -399,6 +429,9 @@ def train(
     about a tenth of the run) ``model_last.zip``, the replay buffer and ``curve_last.csv``.
     ``resume=True`` continues from those to ``total_timesteps``; a resumed run goes on from the
     saved model and buffer but does not repeat the uninterrupted run bit for bit (the envs restart).
+
+    ``demonstrations``, ``bc_weight`` (SAC on a goal env): expert episodes in the replay buffer and a Q-filtered
+    behaviour-cloning step on them (:func:`~don_gym.agents.rl_demos.use_demonstrations`).
     """
     if algorithm not in ALGORITHMS:
         raise DonGymError(f"algorithm={algorithm!r} is unknown; expected one of {list(ALGORITHMS)}")
@@ -407,8 +440,9 @@ def train(
         raise DonGymError(f"total_timesteps={total_timesteps!r}: expected a positive number of env steps")
     if resume and run_dir is None:
         raise DonGymError("resume=True needs the run_dir of the run to resume")
-    sb3 = require_sb3()
     env_kwargs = dict(env_kwargs or {})
+    check_demonstration_settings(demonstrations, bc_weight, algorithm, env_kwargs.get("goal"))
+    sb3 = require_sb3()
     class_name, policy, kwargs = _algorithm_setup(algorithm, env_kwargs, algo_kwargs)
     algo_class = getattr(sb3, class_name)
     if policy == "MultiInputPolicy" and class_name == "SAC":
@@ -417,16 +451,10 @@ def train(
         kwargs["replay_buffer_class"] = HerReplayBuffer
         kwargs["policy_kwargs"]["features_extractor_class"] = _policy_inputs_extractor()
     run_path = Path(run_dir) if run_dir is not None else None
-    config = {
-        "algorithm": algorithm,
-        "total_timesteps": int(total_timesteps),
-        "n_envs": int(n_envs),
-        "vectorize": vectorize,
-        "env_kwargs": _jsonable(env_kwargs),
-        "algo_kwargs": _jsonable({k: v for k, v in kwargs.items() if k != "replay_buffer_class"}),
-        "seeds": {"algorithm": int(seed), "envs_first_reset": [int(seed) + i for i in range(int(n_envs))]},
-        "versions": {"python": platform.python_version(), "stable_baselines3": sb3.__version__},
-    }
+    config = _run_config(
+        algorithm, total_timesteps, n_envs, vectorize, env_kwargs, kwargs, seed, (demonstrations, bc_weight)
+    )  # fmt: skip
+    config["versions"]["stable_baselines3"] = sb3.__version__
     curve, wall_s_before = LearningCurve(), 0.0
     if resume:
         curve, wall_s_before = _resumed_state(run_path, config)
@@ -457,6 +485,11 @@ def train(
             callback = _curve_callback(
                 curve, int(total_timesteps), description, progress, run_path, save_every, run_wall_s
             )  # fmt: skip
+            if demonstrations:
+                demos_path = run_path / RUN_FILES["demonstrations"] if run_path is not None else None
+                callback = use_demonstrations(
+                    model, callback, env_kwargs, int(demonstrations), float(bc_weight), seed, demos_path, resume
+                )  # fmt: skip
             model.learn(total_timesteps=remaining, callback=callback, reset_num_timesteps=not resume)
     finally:
         vec_env.close()

@@ -459,7 +459,7 @@ def _sac_steps(args: argparse.Namespace) -> dict[str, int]:
 
 def sac_runs(args: argparse.Namespace, keypoint_model: str) -> list[TrainingRun]:
     """The SAC part's runs, one per keypoint source in :data:`SAC_SOURCES`' order, same seeds and settings."""
-    algo = {"learning_starts": args.sac_learning_starts}
+    algo = {"learning_starts": args.sac_learning_starts, "gamma": args.sac_gamma}
     if args.sac_envs > 1:
         algo["gradient_steps"] = -1  # a gradient step per env step, whatever the number of envs
     train_kwargs = _sac_env_kwargs(args, keypoint_model)
@@ -476,6 +476,8 @@ def sac_runs(args: argparse.Namespace, keypoint_model: str) -> list[TrainingRun]
                 "env_kwargs": train_kwargs | {"keypoints": source},
                 "algo_kwargs": algo,
                 "vectorize": args.vectorize if (source == "don" and args.sac_envs > 1) else None,
+                "demonstrations": args.sac_demos,
+                "bc_weight": args.sac_bc,
             },
         )
         for source in SAC_SOURCES
@@ -543,6 +545,12 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         + " of the time (`HandStarts`; the rest from the task's start)"
         if args.sac_hand_starts
         else "training episodes start from the task's start"
+    ) + (
+        f"; {args.sac_demos} episodes of the privileged expert (`EndEffectorExpert`, from the task's start) in each "
+        "replay buffer before learning"
+        + (f", with a Q-filtered behaviour-cloning step of weight {args.sac_bc:g} on them" if args.sac_bc else "")
+        if args.sac_demos
+        else ""
     )
     times = ", ".join(
         f"{source} {steps[source]} steps in {runs[source].run_wall_s / 60:.1f} min "
@@ -565,7 +573,8 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         f"{args.image_size[0]}x{args.image_size[1]} wrist images"
         + (f", in a {args.sac_window}-pixel window around the part" if args.sac_window else "")
         + f"), `true` (exact, always seen). {times}; {starts_text}. Learning starts {args.sac_learning_starts}, "
-        f"MLP 256x256, seed {args.seed}. Runs: `{_shown(args.out)}/sac_{args.sac_goal}_*`. Learning curves "
+        f"discount {args.sac_gamma:g}, MLP 256x256, seed {args.seed}. "
+        f"Runs: `{_shown(args.out)}/sac_{args.sac_goal}_*`. Learning curves "
         f"(training episodes, all starts, beside a random policy on the same starts): `{_shown(figure)}`.",
         "",
         f"Evaluation on the same {n} held-out episodes (seeds {EVAL_SEED}..{EVAL_SEED + n - 1}) from two starts: "
@@ -630,7 +639,8 @@ PART_SETTINGS = {
     "ppo": ("ppo_envs", "ppo_steps", "ppo_rollout", "ppo_eval_episodes"),
     "sac": (
         "sac_goal", "sac_envs", "sac_steps", "sac_don_steps", "sac_max_steps", "sac_learning_starts",
-        "sac_eval_episodes", "sac_hand_starts", "sac_memory", "sac_window", "vectorize",
+        "sac_eval_episodes", "sac_hand_starts", "sac_memory", "sac_window", "vectorize", "sac_demos", "sac_bc",
+        "sac_gamma",
     ),
 }  # fmt: skip
 COMMON_SETTINGS = ("keypoint_model", "sensor", "seed", "image_size", "train_device")
@@ -703,6 +713,10 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--sac-learning-starts", type=int, default=rl.DEFAULT_ALGO_KWARGS["sac-her"]["learning_starts"])
     parser.add_argument("--sac-eval-episodes", type=positive_int, default=20)
     parser.add_argument(
+        "--sac-gamma", type=float, default=rl.DEFAULT_ALGO_KWARGS["sac-her"]["gamma"],
+        help="SAC's discount (default %(default)s; an episode of N steps wants about 1 - 1/N)",
+    )  # fmt: skip
+    parser.add_argument(
         "--sac-memory", action="store_true",
         help="the policies also see each keypoint's last seen place and age (KeypointMemory), so they still know "
         "where the part is once the camera has lost it",
@@ -715,6 +729,20 @@ def _parser() -> argparse.ArgumentParser:
         "--sac-hand-starts", type=_hand_starts, default=DEFAULT_HAND_STARTS, metavar="START=SHARE,...",
         help="shares of SAC training episodes that start with the hand at or on the part (HandStarts; "
         f"'none' for none; default {','.join(f'{k}={v}' for k, v in DEFAULT_HAND_STARTS.items())})",
+    )  # fmt: skip
+    parser.add_argument(
+        "--sac-demos", type=int, default=0, metavar="N",
+        help="episodes of the privileged expert (EndEffectorExpert) written into each SAC run's replay buffer before "
+        "learning, stepped in the run's own observation pipeline from the task's start (default 0: none)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--sac-bc", type=float, default=0.0, metavar="WEIGHT",
+        help="with --sac-demos: weight of a behaviour-cloning step on the demonstrations after each gradient step, "
+        "kept where the critic prefers the expert's action (Q-filter; default 0: none)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--section", default=None, metavar="KEY",
+        help="record into the RESULTS.md section KEY instead of rl-<part> / rl-<part>-custom (one part only)",
     )  # fmt: skip
     parser.add_argument(
         "--jobs", type=positive_int, default=None,
@@ -732,6 +760,13 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     parts = list(dict.fromkeys(args.only or PARTS))
     args.custom_parts = {part for part in parts if _custom_settings(parser, args, part)}
+    if args.section is not None and (len(parts) != 1 or not args.custom_parts):
+        parser.error(f"--section {args.section!r}: names the section of one part run with other settings (--only)")
+    if args.sac_demos < 0 or args.sac_bc < 0 or (args.sac_bc and not args.sac_demos):
+        parser.error(
+            f"--sac-demos {args.sac_demos} --sac-bc {args.sac_bc}: expected N >= 0, WEIGHT >= 0, and "
+            "demonstrations for a behaviour-cloning weight"
+        )
     if args.quick:
         args.throughput_envs, args.throughput_steps = [1, 2], 2
         args.ppo_envs, args.ppo_rollout, args.ppo_steps, args.ppo_eval_episodes = 1, 8, 8, 2
@@ -824,7 +859,7 @@ def main(argv: list[str] | None = None) -> int:
             key, title = f"rl-{part}", PART_TITLES[part]
             if part in args.custom_parts:
                 # Beside the default run's figures, not over them (e.g. the longer recipes of the docstring).
-                key, after = f"{key}-custom", key
+                key, after = args.section or f"{key}-custom", key
                 title = title.replace(" (bench_rl.py)", ", other settings (bench_rl.py)")
             record_section(key, title, intro + "\n\n" + text, after=after)
     else:

@@ -73,6 +73,25 @@ def test_descriptor_agent_finds_the_instances_and_grasps_a_target(env):
     assert info["part"] == "toolcap"
 
 
+def test_with_no_instance_at_the_match_fraction_the_agent_searches_once_more_at_the_fallback(env):
+    obs, info = env.reset(seed=SEED)
+    truth = BinOracleAgent(env).estimates(obs, info)
+    # A match fraction no ring pixel meets: without a fallback nothing is found, and act gives up in one line.
+    strict = BinAxisGraspAgent(env, model="oracle", match_fraction=1e-3, fallback_match_fraction=None)
+    assert strict.estimates(obs, info) == []
+    with pytest.raises(DonGymError, match="no instance of 'toolcap' found"):
+        strict.act(obs, info)
+    # The fallback's looser fraction finds the same instances the default does.
+    loose = BinAxisGraspAgent(env, model="oracle", match_fraction=1e-3, fallback_match_fraction=0.4)
+    found = loose.estimates(obs, info)
+    assert len(found) == len(truth) == 2
+    for estimate in found:
+        assert min(np.abs(estimate.axis_points_world - t.axis_points_world).max() for t in truth) < 0.01
+    for bad in (0.3, 1.5, float("nan")):
+        with pytest.raises(DonGymError, match="fallback_match_fraction"):
+            BinAxisGraspAgent(env, model="oracle", match_fraction=0.4, fallback_match_fraction=bad)
+
+
 def test_local_matches_one_per_spot_best_first():
     distances = np.ones((20, 30), np.float32)
     distances[5, 5], distances[5, 6], distances[15, 25] = 0.1, 0.1, 0.05  # a plateau of two pixels, and a better spot

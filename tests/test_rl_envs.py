@@ -15,6 +15,7 @@ from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
 import don_gym  # noqa: F401 - registers the envs
 from don_gym.agents import rl
+from don_gym.agents.rl_demos import ExpertEpisodes
 from don_gym.errors import DonGymError
 from don_gym.geometry import CameraIntrinsics, make_transform
 from don_gym.learning.checkpoints import CheckpointMetadata, save_checkpoint
@@ -295,6 +296,53 @@ def test_sac_her_trains_writes_its_run_and_resumes(tmp_path: Path) -> None:
         rl.train("sac", 80, env_kwargs=env_kwargs | {"max_steps": 5}, run_dir=run_dir, resume=True, progress=False)
     with pytest.raises(DonGymError, match="nothing|holds no"):
         rl.train("sac", 80, env_kwargs=env_kwargs, run_dir=tmp_path / "empty", resume=True, progress=False)
+
+
+def test_expert_demonstrations_seed_the_buffer_and_behaviour_cloning_pulls_the_actor_to_them(tmp_path: Path) -> None:
+    env_kwargs = {"keypoints": "true", "goal": "lift", "max_steps": 50, "hand_starts": {"in_hand": 1.0}}
+    algo_kwargs = {
+        "learning_starts": 20, "batch_size": 16, "buffer_size": 1000, "policy_kwargs": {"net_arch": [16, 16]}
+    }  # fmt: skip
+    runs = {}
+    for name, bc_weight in (("plain", 0.0), ("bc", 1.0)):
+        runs[name] = rl.train("sac", 200, seed=0, env_kwargs=env_kwargs, algo_kwargs=algo_kwargs, progress=False,
+                              run_dir=tmp_path / name, demonstrations=2, bc_weight=bc_weight)  # fmt: skip
+    demos = ExpertEpisodes.load(tmp_path / "bc" / rl.RUN_FILES["demonstrations"])
+    # From the task's start (not the run's in-hand starts) the expert lifts the part in both episodes.
+    assert demos.successes == [True, True]
+    n = len(demos.actions)
+    assert demos.actions.shape == (n, 5) and 40 < n < 100 and np.abs(demos.actions).max() <= 1.0
+    assert set(demos.observations) == {"observation", "achieved_goal", "desired_goal"}
+    buffer = runs["bc"].model.replay_buffer
+    # The demonstrations come first in the buffer, as whole episodes HER can relabel, then the run's own steps.
+    assert buffer.pos == n + 200
+    np.testing.assert_array_equal(buffer.actions[:n, 0], demos.actions)
+    assert buffer.dones[n - 1, 0] and int(buffer.ep_length[0, 0]) + int(buffer.ep_length[n - 1, 0]) == n
+    np.testing.assert_array_equal(buffer.observations["desired_goal"][:n, 0], demos.observations["desired_goal"])
+
+    def imitation_error(model) -> float:
+        actions, _ = model.predict(demos.observations, deterministic=True)
+        return float(np.mean((actions - demos.actions) ** 2))
+
+    # The same run with the behaviour-cloning step lies closer to the expert's actions on its states.
+    errors = {name: imitation_error(run.model) for name, run in runs.items()}
+    assert errors["bc"] < 0.5 * errors["plain"]
+    config = json.loads((tmp_path / "bc" / "config.json").read_text())
+    assert config["demonstrations"] == {"episodes": 2, "bc_weight": 1.0}
+    resumed = rl.train("sac", 210, seed=0, env_kwargs=env_kwargs, algo_kwargs=algo_kwargs, progress=False,
+                       run_dir=tmp_path / "bc", resume=True, demonstrations=2, bc_weight=1.0)  # fmt: skip
+    assert resumed.model.num_timesteps == 210
+    with pytest.raises(DonGymError, match="other \\['demonstrations'\\]"):
+        rl.train("sac", 100, env_kwargs=env_kwargs, run_dir=tmp_path / "bc", resume=True, progress=False)
+    for bad, match in (
+        ({"demonstrations": -1}, "demonstrations=-1"),
+        ({"demonstrations": 2, "bc_weight": float("nan")}, "bc_weight=nan"),
+        ({"bc_weight": 1.0}, "needs demonstrations"),
+    ):
+        with pytest.raises(DonGymError, match=match):
+            rl.train("sac", 10, env_kwargs=env_kwargs, progress=False, **bad)
+    with pytest.raises(DonGymError, match="algorithm='ppo'"):
+        rl.train("ppo", 10, env_kwargs={"keypoints": "true"}, progress=False, demonstrations=2)
 
 
 # ------------------------------------------------------------------------------ descriptor images
