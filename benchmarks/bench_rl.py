@@ -53,6 +53,14 @@ With each keypoint's last seen place and age (``--sac-memory``) and the DON on a
     python benchmarks/bench_rl.py --only sac --sac-memory --sac-window 192 --sac-steps 80000 \
         --sac-don-steps 80000 --out runs/rl-mem --jobs 2
 
+Expert demonstrations (``--sac-demos N``): each SAC run's replay buffer starts with N episodes of the privileged
+``EndEffectorExpert`` from the task's start, stepped in the run's own observation pipeline (``demonstrations.npz``
+in the run's directory); ``--sac-bc W`` adds a Q-filtered behaviour-cloning step on them (``agents/rl_demos.py``);
+``--section`` names the RESULTS.md section so such a run does not replace ``rl-sac-custom``::
+
+    python benchmarks/bench_rl.py --only sac --sac-memory --sac-window 192 --sac-steps 80000 \
+        --sac-don-steps 80000 --sac-demos 100 --out runs/rl-demos --jobs 2 --section rl-sac-demos
+
 Longer recipe for a GPU machine (16 cores, one GPU: the DON on the GPU on 8 envs' images at once, their
 physics in 8 subprocesses, a gradient step per env step)::
 

@@ -98,6 +98,26 @@ def test_sac_memory_and_window_reach_every_sac_run_and_record_apart(tmp_path: Pa
         env.close()
 
 
+def test_demonstrations_and_discount_reach_every_sac_run_and_bad_options_are_refused(tmp_path: Path, capsys) -> None:
+    parser = bench_rl._parser()
+    args = parser.parse_args(["--out", str(tmp_path), "--sac-demos", "5", "--sac-bc", "0.5", "--sac-gamma", "0.98"])
+    assert bench_rl._custom_settings(parser, args, "sac") == ["sac_demos", "sac_bc", "sac_gamma"]
+    args.image_size = (64, 48)
+    for run in bench_rl.sac_runs(args, "oracle"):
+        assert run.kwargs["demonstrations"] == 5 and run.kwargs["bc_weight"] == 0.5
+        assert run.kwargs["algo_kwargs"]["gamma"] == 0.98
+    for options, message in (
+        (["--only", "sac", "--sac-bc", "1"], "demonstrations for a behaviour-cloning weight"),
+        (["--only", "sac", "--sac-demos", "-1"], "--sac-demos -1"),
+        (["--only", "sac", "--section", "rl-sac-x"], "--section 'rl-sac-x'"),
+        (["--sac-demos", "2", "--section", "rl-sac-x"], "--section 'rl-sac-x'"),
+    ):
+        with pytest.raises(SystemExit) as exit_info:
+            bench_rl.main([*options, "--out", str(tmp_path)])
+        assert exit_info.value.code == 2
+        assert message in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("jobs", ["0", "-1", "x", "1.5"])
 def test_jobs_must_be_a_positive_integer(jobs: str, capsys) -> None:
     with pytest.raises(SystemExit) as exit_info:
