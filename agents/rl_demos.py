@@ -19,6 +19,7 @@ Both run in :func:`don_gym.agents.rl.train` (``demonstrations=``, ``bc_weight=``
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -124,7 +125,10 @@ def add_expert_episodes(model: Any, env_kwargs: dict[str, Any], episodes: int, s
             obs = new_obs
         truncate = getattr(model.replay_buffer, "truncate_last_trajectory", None)
         if truncate is not None and n_envs > 1:
-            truncate()
+            with warnings.catch_warnings():
+                # The other envs' episodes still running are cut here on purpose.
+                warnings.filterwarnings("ignore", message="The last trajectory in the replay buffer")
+                truncate()
     finally:
         vec_env.close()
     return ExpertEpisodes(
