@@ -590,15 +590,19 @@ class BinAxisGraspAgent(_BinAgentBase):
 
     def estimates(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None) -> list[InstanceEstimate]:
         descriptor_image = self.source.descriptor_image(obs, info)
-        found = self._estimates_below(descriptor_image, obs, self.match_threshold)
+        # The distances do not depend on the threshold: computed once for both searches.
+        distances = descriptor_distances(descriptor_image, self.reference_descriptors)
+        middle = descriptor_distances(descriptor_image, self.middle_descriptor[None])[0]
+        found = self._estimates_below(distances, middle, obs, self.match_threshold)
         if not found and self.fallback_threshold is not None:
-            found = self._estimates_below(descriptor_image, obs, self.fallback_threshold)
+            found = self._estimates_below(distances, middle, obs, self.fallback_threshold)
         return found
 
     def _estimates_below(
-        self, descriptor_image: np.ndarray, obs: Mapping[str, Any], threshold: float
+        self, distances: np.ndarray, middle: np.ndarray, obs: Mapping[str, Any], threshold: float
     ) -> list[InstanceEstimate]:
-        """The instances whose ring candidates match the reference descriptors closer than ``threshold``."""
+        """The instances whose ring candidates match the reference descriptors closer than ``threshold``, from the
+        descriptor distances (2, H, W) to the two rings' references and (H, W) to the middle ring's."""
         depth = np.asarray(obs["depth"], dtype=np.float32)
         intrinsics = CameraIntrinsics.from_array(obs["camera_intrinsics"])
         T_world_camera = np.asarray(obs["camera_pose"], dtype=np.float64)
@@ -606,7 +610,6 @@ class BinAxisGraspAgent(_BinAgentBase):
         typical_z = float(np.median(valid)) if len(valid) else 0.45
         # One candidate per ring: minima closer than a ring's diameter are one ring's arc.
         window_px = intrinsics.fx * self.targets.window_m / typical_z
-        distances = descriptor_distances(descriptor_image, self.reference_descriptors)
         points, pixels, match_distances = [], [], []
         for k in range(2):
             uv, distance = local_matches(
@@ -621,7 +624,6 @@ class BinAxisGraspAgent(_BinAgentBase):
             points.append(transform_points(T_world_camera, points_camera[ok]) if ok.any() else np.zeros((0, 3)))
             pixels.append(uv[ok] if len(uv) else uv)
             match_distances.append(distance[ok] if len(uv) else distance)
-        middle = descriptor_distances(descriptor_image, self.middle_descriptor[None])[0]
         found = pair_ring_candidates(
             points, pixels, match_distances, depth, T_world_camera, self.targets, middle, threshold,
             floor_z_m=TABLE_TOP_Z_M,
