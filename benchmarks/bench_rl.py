@@ -90,6 +90,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import FIGURES, REPO_ROOT, freeze_commit_description, record_section  # noqa: E402
 
 from don_gym.agents import AxisGraspAgent, rl  # noqa: E402
+from don_gym.agents.rl_demos import check_demonstration_settings  # noqa: E402
 from don_gym.cli import positive_int  # noqa: E402
 from don_gym.errors import DonGymError  # noqa: E402
 from don_gym.io import write_text_atomic  # noqa: E402
@@ -770,11 +771,10 @@ def main(argv: list[str] | None = None) -> int:
     args.custom_parts = {part for part in parts if _custom_settings(parser, args, part)}
     if args.section is not None and (len(parts) != 1 or not args.custom_parts):
         parser.error(f"--section {args.section!r}: names the section of one part run with other settings (--only)")
-    if args.sac_demos < 0 or args.sac_bc < 0 or (args.sac_bc and not args.sac_demos):
-        parser.error(
-            f"--sac-demos {args.sac_demos} --sac-bc {args.sac_bc}: expected N >= 0, WEIGHT >= 0, and "
-            "demonstrations for a behaviour-cloning weight"
-        )
+    try:  # the check rl.train makes, before any part runs
+        check_demonstration_settings(args.sac_demos, args.sac_bc, "sac", args.sac_goal)
+    except DonGymError as exc:
+        parser.error(f"--sac-demos {args.sac_demos} --sac-bc {args.sac_bc}: {exc}")
     if args.quick:
         args.throughput_envs, args.throughput_steps = [1, 2], 2
         args.ppo_envs, args.ppo_rollout, args.ppo_steps, args.ppo_eval_episodes = 1, 8, 8, 2

@@ -107,8 +107,9 @@ def test_demonstrations_and_discount_reach_every_sac_run_and_bad_options_are_ref
         assert run.kwargs["demonstrations"] == 5 and run.kwargs["bc_weight"] == 0.5
         assert run.kwargs["algo_kwargs"]["gamma"] == 0.98
     for options, message in (
-        (["--only", "sac", "--sac-bc", "1"], "demonstrations for a behaviour-cloning weight"),
+        (["--only", "sac", "--sac-bc", "1"], "bc_weight=1.0 needs demonstrations > 0"),
         (["--only", "sac", "--sac-demos", "-1"], "--sac-demos -1"),
+        (["--only", "sac", "--sac-demos", "2", "--sac-bc", "nan"], "bc_weight=nan"),
         (["--only", "sac", "--section", "rl-sac-x"], "--section 'rl-sac-x'"),
         (["--sac-demos", "2", "--section", "rl-sac-x"], "--section 'rl-sac-x'"),
     ):
