@@ -64,6 +64,7 @@ from don_gym.sim.bin_task import (
     FINGER_HALF_WIDTH_M,
     FINGER_OUTSIDE_PAD_M,
     bin_inner_bounds,
+    grasp_opening_m,
     lying_footprint_m,
     pregrasp_width_m,
 )
@@ -228,14 +229,13 @@ def grasp_candidates(
 ) -> list[GraspCandidate]:
     """Every grasp of every instance estimate (module docstring) with its clearance in the observed point cloud
     (N, 3), world metres, of pixels covering ``pixel_area_m2`` each (:func:`finger_obstruction`)."""
-    opening = pregrasp_width_m(object_model)
     length, diameter = lying_footprint_m(object_model)
     t1, t2 = (float(t) for t in targets.axial_positions_m)
     axial = (np.asarray(object_model.mesh.vertices, dtype=np.float64) - object_model.center_of_mass) @ np.asarray(
         object_model.plus_axis, dtype=np.float64
     )
     middle_axial = end_faces_axial_position_m(object_model)  # the along grasp's fingers close on the end faces
-    along_axis_fits = length + 2 * GRASP_MARGIN_M <= opening
+    along_axis_fits = length + 2 * GRASP_MARGIN_M <= pregrasp_width_m(object_model, "along")
     out: list[GraspCandidate] = []
     for index, estimate in enumerate(estimates):
         q1, q2 = estimate.axis_points_world
@@ -262,6 +262,7 @@ def grasp_candidates(
         for pose, kind in actions:
             pose[3] = float(np.arctan2(np.sin(pose[3]), np.cos(pose[3])))
             action = np.append(pose, float(GRASP_KINDS.index(kind)))
+            opening = grasp_opening_m(object_model, kind, pose[:2], float(pose[3]))
             out.append(
                 GraspCandidate(
                     action=action.astype(np.float32),

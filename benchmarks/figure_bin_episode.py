@@ -23,7 +23,7 @@ from don_gym.evaluation.bin_benchmark import BinBenchmarkConfig, make_agent, pil
 from don_gym.evaluation.splits import BIN_DEVELOPMENT_SEED  # noqa: E402
 from don_gym.geometry import CameraIntrinsics, project_points, transform_points  # noqa: E402
 from don_gym.sim.bin_env import BinPickEnv  # noqa: E402
-from don_gym.sim.bin_task import pregrasp_width_m  # noqa: E402
+from don_gym.sim.bin_task import grasp_opening_m  # noqa: E402
 from don_gym.sim.script import GRASP_KINDS  # noqa: E402
 
 #: Length (m) of the drawn +axis arrow.
@@ -65,7 +65,6 @@ def main() -> None:
         seed = pile_seed(BIN_DEVELOPMENT_SEED, args.pile)
         obs, info = env.reset(seed=seed)
         agent.reset()
-        opening = pregrasp_width_m(env.model)
         frames, attempt = [], 1
         while True:
             try:
@@ -74,10 +73,11 @@ def main() -> None:
                 frames.append({"rgb": obs["rgb"], "title": f"agent gave up: {exc}"})
                 break
             # The frame shows the image the grasp was chosen on, the grasp drawn, and what came of it.
+            kind = GRASP_KINDS[int(round(float(action[4])))]
+            opening = grasp_opening_m(env.model, kind, action[:2], float(action[3]))
             fingers, axis = grasp_overlay(action, obs, opening)
             frame = {"rgb": obs["rgb"], "fingers_uv": fingers, "axis_uv": axis}
             phase = "regrasp at the station" if info["phase"] == "regrasp" else f"attempt {attempt}"
-            kind = GRASP_KINDS[int(round(float(action[4])))]
             obs, _, terminated, truncated, info = env.step(action)
             agent.observe_outcome(info["outcome"])
             frames.append(frame | {"title": f"{phase}: {kind} -> {info['outcome']}"})

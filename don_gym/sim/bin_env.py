@@ -25,8 +25,8 @@ from don_gym.sim.bin_task import (
     Instance,
     check_bin_parts,
     check_station,
+    grasp_opening_m,
     lying_footprint_m,
-    pregrasp_width_m,
     station_bounds,
     station_ledge,
 )
@@ -241,7 +241,6 @@ class BinPickEnv(PickPlaceEnv):
         self._build_world(renderer, background)
         self.part_names = [instance.part for instance in self.task.instances]
         self.model = self.models[self.target]
-        self._pregrasp_width_m = pregrasp_width_m(self.model)
 
         self.action_space = self._make_action_space()
         self.observation_space = self._make_observation_space()
@@ -470,7 +469,8 @@ class BinPickEnv(PickPlaceEnv):
         aimed = self.task.nearest_instance(action[:3], part=self.target)
         if aimed is not None:
             self.task.set_focus(aimed)
-        script = GraspPlaceScript(self.sim, self.robot, self.task, open_width_m=self._pregrasp_width_m)
+        opening = grasp_opening_m(self.model, kind, action[:2], float(action[3]))
+        script = GraspPlaceScript(self.sim, self.robot, self.task, open_width_m=opening)
         set_down = self._set_down_spec() if kind == "standing" and self.station_xy_m is not None else None
         trace = script.run(action[:3], float(action[3]), kind, set_down=set_down)
         judgement = self.task.judge(trace.lifted, trace.left_workspace, self.robot.contacts(self.task))
@@ -506,7 +506,8 @@ class BinPickEnv(PickPlaceEnv):
         Whatever happens, that instance leaves play with the step (placed, dropped, or left at the station)."""
         instance = self._regrasp_instance
         self.task.set_focus(instance)
-        script = GraspPlaceScript(self.sim, self.robot, self.task, open_width_m=self._pregrasp_width_m)
+        opening = grasp_opening_m(self.model, kind, action[:2], float(action[3]))
+        script = GraspPlaceScript(self.sim, self.robot, self.task, open_width_m=opening)
         trace = script.run(action[:3], float(action[3]), kind)
         judgement = self.task.judge(trace.lifted, trace.left_workspace, self.robot.contacts(self.task))
         # The target was lifted out of the bin in this attempt: a regrasp that lifts nothing has not placed it.

@@ -118,10 +118,40 @@ def lying_footprint_m(model: ObjectModel) -> tuple[float, float]:
     return float(np.ptp(along)), float(2.0 * radial.max())
 
 
-def pregrasp_width_m(model: ObjectModel) -> float:
-    """Finger opening (m) on the way down to a grasp of ``model``: its diameter plus :data:`PAD_CLEARANCE_M`
-    each side, at most the gripper's full opening."""
-    return float(min(MAX_WIDTH_M, lying_footprint_m(model)[1] + 2 * PAD_CLEARANCE_M))
+def pregrasp_width_m(model: ObjectModel, kind: str = "across") -> float:
+    """Finger opening (m) on the way down to a grasp of ``model`` of ``kind``
+    (:data:`~don_gym.sim.script.GRASP_KINDS`): the width the fingers close on (its diameter; its length for a
+    grasp along the axis, which closes on the end faces) plus :data:`PAD_CLEARANCE_M` each side, at most the
+    gripper's full opening."""
+    length, diameter = lying_footprint_m(model)
+    closes_on = length if kind == "along" else diameter
+    return float(min(MAX_WIDTH_M, closes_on + 2 * PAD_CLEARANCE_M))
+
+
+def grasp_opening_m(model: ObjectModel, kind: str, grasp_xy_m: np.ndarray, axis_yaw_rad: float) -> float:
+    """Finger opening (m) on the way down to a grasp in the bin of ``model`` of ``kind`` at ``grasp_xy_m`` (2,)
+    (world, m) whose believed +axis has yaw ``axis_yaw_rad`` (rad): :func:`pregrasp_width_m`, narrowed as far as
+    the part's diameter allows where the open fingers (:data:`FINGER_OUTSIDE_PAD_M` beyond each pad,
+    :data:`FINGER_HALF_WIDTH_M` either side) would reach past the bin's walls (outside the bin, as at the regrasp
+    station: the narrowest). A grasp along the axis opens for the part's length, room for a grasp point some
+    millimetres off along the axis; against a wall it keeps the room the walls leave."""
+    widest, narrowest = pregrasp_width_m(model, kind), pregrasp_width_m(model, "across")
+    if widest <= narrowest:
+        return widest
+    axis = np.array([np.cos(axis_yaw_rad), np.sin(axis_yaw_rad)])
+    closing = axis if kind == "along" else np.array([-axis[1], axis[0]])
+    side = np.array([-closing[1], closing[0]])
+    x0, x1, y0, y1 = bin_inner_bounds()
+    low, high = np.array([x0, y0]), np.array([x1, y1])
+    reach = np.inf  # how far (m) the fingers' outer faces may go from the grasp point along the closing direction
+    for sign in (-1.0, 1.0):
+        for offset in (-FINGER_HALF_WIDTH_M, FINGER_HALF_WIDTH_M):
+            origin = np.asarray(grasp_xy_m, dtype=np.float64)[:2] + offset * side
+            direction = sign * closing
+            with np.errstate(divide="ignore", invalid="ignore"):
+                exits = np.where(direction > 0, (high - origin) / direction, (low - origin) / direction)
+            reach = min(reach, float(np.min(np.where(np.abs(direction) > 1e-12, exits, np.inf))))
+    return float(np.clip(2.0 * (reach - FINGER_OUTSIDE_PAD_M), narrowest, widest))
 
 
 def longest_part_m() -> float:
