@@ -68,7 +68,7 @@ from don_gym.sim.bin_task import (
     lying_footprint_m,
     pregrasp_width_m,
 )
-from don_gym.sim.script import GRASP_KINDS, end_faces_axial_position_m
+from don_gym.sim.script import GRASP_KINDS, STEP_KINDS, end_faces_axial_position_m
 from don_gym.sim.task import TABLE_TOP_Z_M, grasp_axial_position_m
 
 #: An instance whose +axis is within 45 degrees of vertical stands on an end.
@@ -117,6 +117,10 @@ RIM_GRASP_DEPTH_M = 0.012
 #: Grasp kinds (:data:`~don_gym.sim.script.GRASP_KINDS`), the preferred first: across the axis, along it (both
 #: placed in the cradle: the env's place knows the kind), across a standing part (which arrives upright).
 GRASP_KIND_PREFERENCE = ("across", "along", "standing")
+#: When the preferred grasp's fingers would reach past the bin's walls (a part lying against a wall, its grasps all
+#: blocked), the agent pushes the part away from the wall first (the env's "push" step), at most this many times
+#: in a row before it tries the grasp anyway. 0: never push.
+MAX_PUSHES_IN_A_ROW = 2
 
 
 @dataclass(frozen=True)
@@ -273,6 +277,19 @@ def grasp_candidates(
                 )
             )
     return out
+
+
+def push_away_from_walls(candidate: GraspCandidate, estimate: InstanceEstimate) -> np.ndarray:
+    """The push step (5,) float32 ``[x, y, z, yaw, kind]`` that rolls a lying instance whose ``candidate`` grasp
+    is blocked by a wall towards the bin's middle: pressed at the grasp point, pushed across the perceived axis
+    (a round part rolls that way), on the side of the bin's centre."""
+    point = np.asarray(candidate.action[:3], dtype=np.float64)
+    along, across = _closing_frame(float(np.arctan2(estimate.direction[1], estimate.direction[0])))
+    x0, x1, y0, y1 = bin_inner_bounds()
+    towards_middle = np.array([(x0 + x1) / 2, (y0 + y1) / 2]) - point[:2]
+    direction = across if float(across @ towards_middle) >= 0.0 else -across
+    yaw = float(np.arctan2(direction[1], direction[0]))
+    return np.array([*point, yaw, float(STEP_KINDS.index("push"))], dtype=np.float32)
 
 
 def times_tried(action: np.ndarray, failed_actions: Sequence[np.ndarray]) -> int:
@@ -444,11 +461,15 @@ class _BinAgentBase:
         #: The last choice: the instance estimates and the ranked grasps.
         self.last_estimates: list[InstanceEstimate] = []
         self.last_ranking: list[GraspCandidate] = []
+        #: Pushes in a row allowed before a grasp blocked by a wall is tried anyway (:data:`MAX_PUSHES_IN_A_ROW`).
+        self.max_pushes_in_a_row = MAX_PUSHES_IN_A_ROW
+        self.pushes_in_a_row = 0
 
     def reset(self) -> None:
         """Forget the failed grasps (call at every env reset)."""
         self.failed_actions = []
         self.last_action = None
+        self.pushes_in_a_row = 0
 
     def observe_outcome(self, outcome: str) -> None:
         """Tell the agent the outcome of its last action (``info["outcome"]``): a ``"fail"`` (nothing lifted, as the
@@ -463,7 +484,8 @@ class _BinAgentBase:
         raise NotImplementedError
 
     def act(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None = None) -> np.ndarray:
-        """The grasp-mode action (5,) float32 ``[x, y, z, yaw, kind]`` for one observation (``info``: the step's,
+        """The grasp-mode action (5,) float32 ``[x, y, z, yaw, kind]`` for one observation, the preferred grasp (or a
+        push away from a wall that blocks it: :data:`MAX_PUSHES_IN_A_ROW`) (``info``: the step's,
         which the oracle and oracle descriptors need, and whose ``phase`` "regrasp" says the observation shows the
         regrasp station: :meth:`station_estimates`). DonGymError when no instance of the target part is found."""
         at_station = info is not None and info.get("phase") == "regrasp"
@@ -478,7 +500,14 @@ class _BinAgentBase:
         candidates = grasp_candidates(estimates, cloud, self.object_model, self.targets, self.grasp_axial_m, pixel_area)
         ranking = rank_grasps(candidates, estimates, self.failed_actions)
         self.last_estimates, self.last_ranking = estimates, ranking
-        self.last_action = np.asarray(ranking[0].action, dtype=np.float32)
+        best = ranking[0]
+        blocked = not best.walls_clear and best.kind != "standing" and not at_station
+        if blocked and self.pushes_in_a_row < self.max_pushes_in_a_row:
+            self.pushes_in_a_row += 1
+            self.last_action = push_away_from_walls(best, estimates[best.estimate_index])
+        else:
+            self.pushes_in_a_row = 0
+            self.last_action = np.asarray(best.action, dtype=np.float32)
         return self.last_action.copy()
 
 

@@ -24,7 +24,7 @@ from don_gym.evaluation.splits import BIN_DEVELOPMENT_SEED  # noqa: E402
 from don_gym.geometry import CameraIntrinsics, project_points, transform_points  # noqa: E402
 from don_gym.sim.bin_env import BinPickEnv  # noqa: E402
 from don_gym.sim.bin_task import grasp_opening_m  # noqa: E402
-from don_gym.sim.script import GRASP_KINDS  # noqa: E402
+from don_gym.sim.script import STEP_KINDS  # noqa: E402
 
 #: Length (m) of the drawn +axis arrow.
 ARROW_M = 0.04
@@ -33,7 +33,7 @@ ARROW_M = 0.04
 def grasp_overlay(action: np.ndarray, obs: dict, opening_m: float) -> tuple[np.ndarray, np.ndarray]:
     """(fingers_uv, axis_uv), each (2, 2) pixels: the two pads of the grasp ``action`` opened to ``opening_m`` and
     an arrow along its believed +axis, projected with the observation's (reported) camera pose."""
-    kind = GRASP_KINDS[int(round(float(action[4])))]
+    kind = STEP_KINDS[int(round(float(action[4])))]
     yaw = float(action[3])
     closing = yaw + (np.pi / 2 if kind == "along" else 0.0)  # the fingers close across this yaw
     across = np.array([-np.sin(closing), np.cos(closing), 0.0])
@@ -73,7 +73,7 @@ def main() -> None:
                 frames.append({"rgb": obs["rgb"], "title": f"agent gave up: {exc}"})
                 break
             # The frame shows the image the grasp was chosen on, the grasp drawn, and what came of it.
-            kind = GRASP_KINDS[int(round(float(action[4])))]
+            kind = STEP_KINDS[int(round(float(action[4])))]
             opening = grasp_opening_m(env.model, kind, action[:2], float(action[3]))
             fingers, axis = grasp_overlay(action, obs, opening)
             frame = {"rgb": obs["rgb"], "fingers_uv": fingers, "axis_uv": axis}

@@ -20,6 +20,7 @@ from don_gym.evaluation.bin_benchmark import (
     write_bin_outputs,
     write_bin_shard,
 )
+from don_gym.geometry import make_transform
 from don_gym.objects import load_object
 from don_gym.perception.descriptor_sources import axis_end_targets
 from don_gym.perception.keypoints import local_matches
@@ -90,6 +91,67 @@ def test_with_no_instance_at_the_match_fraction_the_agent_searches_once_more_at_
     for bad in (0.3, 1.5, float("nan")):
         with pytest.raises(DonGymError, match="fallback_match_fraction"):
             BinAxisGraspAgent(env, model="oracle", match_fraction=0.4, fallback_match_fraction=bad)
+
+
+def test_a_part_against_a_wall_is_pushed_away_before_it_is_grasped():
+    from don_gym.sim.bin_task import bin_inner_bounds, lying_footprint_m
+    from don_gym.sim.part import lying_rotation
+    from don_gym.sim.task import TABLE_TOP_Z_M
+
+    env = BinPickEnv(parts={"toolcap": 1}, image_size=(160, 120), sensor="ideal", max_steps=6)
+    try:
+        env.reset(seed=200)
+        part, model = env.task.instances[0], env.task.instances[0].model
+        # Lying with its end against the wall at x0, its axis 0.3 rad off the wall's normal: the fingers of
+        # either grasp would reach past the wall.
+        R = lying_rotation(model, 0.3)
+        x0 = bin_inner_bounds()[0]
+        com = np.array([x0 + lying_footprint_m(model)[0] / 2 - 0.002, 0.02, 0.0])
+        T = make_transform(R, com - R @ model.center_of_mass)
+        T[2, 3] = TABLE_TOP_Z_M + 0.0005 - float((model.mesh.vertices @ R.T)[:, 2].min())
+        part.body.set_pose(T)
+        env.task.settle()
+        x0, x1, y0, y1 = bin_inner_bounds()
+        # A grasp where nothing lies (it fails) to observe the part where it now lies.
+        obs, _, _, _, info = env.step(np.array([x1 - 0.03, y1 - 0.03, TABLE_TOP_Z_M + 0.02, 0.0, 0.0], np.float32))
+        never = BinOracleAgent(env)
+        never.max_pushes_in_a_row = 0
+        assert int(never.act(obs, info)[4]) != 3
+        agent = BinOracleAgent(env)
+        agent.reset()
+        kinds = []
+        for _ in range(3):
+            action = agent.act(obs, info)
+            obs, _, terminated, truncated, info = env.step(action)
+            agent.observe_outcome(info["outcome"])
+            kinds.append((int(action[4]), info["outcome"]))
+            if terminated or truncated:
+                break
+        assert kinds[0] == (3, "pushed") and kinds[-1][1] == "grasp_and_place", kinds
+        assert agent.failed_actions == []
+    finally:
+        env.close()
+
+
+def test_a_push_goes_across_the_perceived_axis_towards_the_bin_s_middle():
+    from don_gym.agents.bin_agent import GraspCandidate, push_away_from_walls
+    from don_gym.sim.bin_task import bin_inner_bounds
+
+    x0, x1, y0, y1 = bin_inner_bounds()
+    middle_y = (y0 + y1) / 2
+    # (axis yaw, grasp x, y, the push's yaw): against the wall at x0, at x1, and at y0 (axis along x).
+    cases = (
+        (np.pi / 2, x0 + 0.02, middle_y, 0.0),
+        (np.pi / 2, x1 - 0.02, middle_y, np.pi),
+        (0.0, x0 + 0.1, y0 + 0.02, np.pi / 2),
+    )
+    for axis_yaw, x, y, expected in cases:
+        axis = np.array([np.cos(axis_yaw), np.sin(axis_yaw), 0.0])
+        estimate = InstanceEstimate(np.array([[x, y, 0.02], [x, y, 0.02]]) + np.outer([-0.01, 0.01], axis))
+        candidate = GraspCandidate(np.array([x, y, 0.02, axis_yaw, 0], np.float32), "across", 0.0, False, 0)
+        push = push_away_from_walls(candidate, estimate)
+        assert push.shape == (5,) and push[4] == 3 and np.allclose(push[:3], [x, y, 0.02])
+        assert abs(np.angle(np.exp(1j * (float(push[3]) - expected)))) < 1e-5
 
 
 def test_local_matches_one_per_spot_best_first():

@@ -16,7 +16,7 @@ import trimesh
 
 import don_gym  # noqa: F401  (registers the env ids)
 from don_gym.errors import DonGymError
-from don_gym.geometry import project_points, transform_points
+from don_gym.geometry import make_transform, project_points, transform_points
 from don_gym.objects import load_object
 from don_gym.sim.bin_env import BinPickEnv
 from don_gym.sim.bin_task import (
@@ -31,6 +31,7 @@ from don_gym.sim.bin_task import (
     lying_footprint_m,
     pregrasp_width_m,
 )
+from don_gym.sim.part import lying_rotation
 from don_gym.sim.robot import MAX_WIDTH_M
 from don_gym.sim.task import TABLE_TOP_Z_M, seated_pose
 
@@ -322,7 +323,7 @@ def _along_action(env: BinPickEnv, instance: int, flip: bool = False) -> np.ndar
 def test_a_grasp_along_the_axis_is_placed_and_a_reversed_axis_still_lands_reversed():
     env = BinPickEnv(parts={"toolcap": 1}, image_size=None, sensor="ideal")
     try:
-        assert env.action_space.shape == (5,) and env.action_space.high[4] == 2.0
+        assert env.action_space.shape == (5,) and env.action_space.high[4] == 3.0
         results = {}
         for flip in (False, True):
             env.reset(seed=200)
@@ -371,13 +372,43 @@ def test_a_grasp_along_the_axis_opens_for_the_part_s_length_and_takes_an_axial_e
 def test_a_four_number_action_is_an_across_grasp_and_a_bad_kind_is_one_line(env):
     env.reset(seed=100)
     np.testing.assert_array_equal(env._with_grasp_kind(EMPTY_GRASP), [*EMPTY_GRASP, 0.0])
-    for kind in (3.0, -1.0, np.nan):
+    for kind in (4.0, -1.0, np.nan):
         with pytest.raises(DonGymError, match=r"action\[4\]=.* \(grasp kind\): expected the index of one of") as error:
             env.step(np.array([*EMPTY_GRASP, kind], dtype=np.float32))
         assert "\n" not in str(error.value)
     _, _, _, _, info = env.step(EMPTY_GRASP)
     assert info["outcome"] == "fail" and info["grasp_kind"] == "across"
     assert info["sim_time_s"] > 0 and info["observation_move_s"] > 0
+
+
+def _lay_toolcap(instance, xy, yaw: float) -> None:
+    """Put an instance lying on the bin's floor, its centre of mass over ``xy`` (world m), its axis at ``yaw``."""
+    model = instance.model
+    R = lying_rotation(model, yaw)
+    T = make_transform(R, np.array([xy[0], xy[1], 0.0]) - R @ model.center_of_mass)
+    T[2, 3] = TABLE_TOP_Z_M + 0.0005 - float((model.mesh.vertices @ R.T)[:, 2].min())
+    instance.body.set_pose(T)
+
+
+def test_a_push_rolls_a_part_away_from_the_wall_and_is_no_attempt():
+    env = BinPickEnv(parts={"toolcap": 1}, image_size=None, sensor="ideal", max_failed_attempts=2, max_steps=5)
+    try:
+        env.reset(seed=200)
+        _, _, _, _, info = env.step(EMPTY_GRASP)  # a failed attempt: one more in a row ends the episode
+        assert info["outcome"] == "fail" and info["failed_in_a_row"] == 1
+        part = env.task.instances[0]
+        x0 = bin_inner_bounds()[0]
+        _lay_toolcap(part, (x0 + lying_footprint_m(part.model)[1] / 2 + 0.001, 0.02), yaw=np.pi / 2)
+        com_before = part.body.center_of_mass_world.copy()
+        top = env.task.grasp_point_world(part)
+        _, reward, terminated, truncated, info = env.step(np.array([*top, 0.0, 3.0], dtype=np.float32))
+        assert info["outcome"] == "pushed" and info["grasp_kind"] == "push" and reward == 0.0
+        assert not (terminated or truncated) and info["attempts"] == 1 and info["pushes"] == 1
+        assert info["failed_in_a_row"] == 1 and info["sim_time_s"] > 0
+        moved = part.body.center_of_mass_world - com_before
+        assert moved[0] > 0.01 and part.in_play, moved  # rolled away from the wall at x0, still in the bin
+    finally:
+        env.close()
 
 
 @pytest.mark.parametrize("up", [1.0, -1.0])
@@ -397,6 +428,9 @@ def test_a_standing_part_is_set_down_at_the_station_and_placed_after_a_regrasp_f
         assert env.task.at_station(env.task.instances[0])
         assert abs(float(env.task.instances[0].body.plus_axis_world()[2])) < 0.3
         assert info["observation_move_s"] > 0
+        with pytest.raises(DonGymError, match=r"action\[4\]=3.0 \(push\) at the regrasp station") as error:
+            env.step(np.array([*grasp, 0.3, 3.0], dtype=np.float32))
+        assert "\n" not in str(error.value)
         agent = BinAxisGraspAgent(env, model="oracle")
         agent.reset()
         action = agent.act(obs, info)

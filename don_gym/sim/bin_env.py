@@ -38,14 +38,15 @@ from don_gym.sim.env import (
     is_integer,
 )
 from don_gym.sim.robot import FINGER_JOINTS, Panda, wrap_angle
-from don_gym.sim.script import FREE_SPEED_M_S, GRASP_KINDS, GraspPlaceScript, move_duration_s
+from don_gym.sim.script import FREE_SPEED_M_S, STEP_KINDS, GraspPlaceScript, move_duration_s
 from don_gym.sim.sensor import sample_calibration_error
 from don_gym.sim.task import OBSERVATION_YAW_RAD, observation_camera_position
 
 #: ``info["outcome"]`` of a step, worst first: nothing lifted; a target lifted but not placed in the cradle
 #: as it should be; a target placed; a part that is not the target lifted; a target lifted standing and set down
-#: at the regrasp station (the attempt goes on with the next step's grasp there).
-BIN_OUTCOMES = ("fail", "grasp_only", "grasp_and_place", "wrong_part", "set_down")
+#: at the regrasp station (the attempt goes on with the next step's grasp there); a push (no attempt: nothing was
+#: grasped).
+BIN_OUTCOMES = ("fail", "grasp_only", "grasp_and_place", "wrong_part", "set_down", "pushed")
 #: ``info["phase"]``: what the next action is for: a pick from the bin, or the regrasp at the station.
 PHASES = ("pick", "regrasp")
 #: ``info["end_reason"]`` once an episode is over.
@@ -118,9 +119,12 @@ class BinPickEnv(PickPlaceEnv):
     ## Action Space
     - ``control="grasp"`` (one pick attempt per step): ``Box(5)`` ``[x, y, z, yaw, kind]``, the grasp point in
       the world (m), the world yaw (rad) of the +axis of the part the agent means to pick, as in the pick env,
-      and the grasp kind: the index (rounded) of one of :data:`~don_gym.sim.script.GRASP_KINDS`, 0 "across"
-      the axis, 1 "along" it (the fingers on the end faces), 2 "standing" (across a part standing on an end).
-      A 4-number action is an "across" grasp. The scripted program
+      and the grasp kind: the index (rounded) of one of :data:`~don_gym.sim.script.STEP_KINDS`, 0 "across"
+      the axis, 1 "along" it (the fingers on the end faces), 2 "standing" (across a part standing on an end),
+      or 3 "push": no grasp, the closed fingers come down at ``[x, y]`` and move
+      :data:`~don_gym.sim.script.PUSH_DISTANCE_M` towards world yaw ``yaw``, rolling a part lying against a wall
+      away from it (:meth:`~don_gym.sim.script.GraspPlaceScript.push`; ``z`` unused; outcome "pushed", not an
+      attempt, but a step). A 4-number action is an "across" grasp. The scripted program
       (:class:`~don_gym.sim.script.GraspPlaceScript`) grasps there (the fingers closing across the believed
       axis, or along it) and, if something is lifted, carries it to the cradle and places it, the believed axis
       turned onto the cradle's direction and the point held offset by its axial position on the part (the grasp
@@ -148,8 +152,9 @@ class BinPickEnv(PickPlaceEnv):
     ## Episode End
     Terminated when no target instance is left in play (``end_reason`` "cleared"), or in grasp mode after
     ``max_failed_attempts`` steps in a row whose outcome is ``fail`` (nothing lifted; "failed_attempts").
-    Truncated after ``max_steps`` attempts ("step_limit"). A step whose outcome is ``set_down`` is half an attempt
-    (the regrasp's step ends it) and never ends the episode.
+    Truncated after ``max_steps`` steps, attempts and pushes ("step_limit"). A step whose outcome is ``set_down``
+    is half an attempt (the regrasp's step ends it) and never ends the episode; a push is a step, not an attempt,
+    and leaves the count of failed attempts in a row as it was.
 
     ## Regrasp station
     A grasp of kind "standing" carries what it lifted to the station (``regrasp_station``, a free square of table
@@ -175,7 +180,8 @@ class BinPickEnv(PickPlaceEnv):
     After reset and every step: ``outcome`` (:data:`BIN_OUTCOMES`; "fail" after a reset and in ee mode while
     nothing is judged), ``is_success`` (outcome ``grasp_and_place``), ``instance`` (id of the instance lifted,
     or None), ``part`` (its part name, or None), ``targets_left``, ``target``, ``cleared`` (ids of instances
-    taken out this step, picked or not), ``attempts`` (steps so far), ``failed_in_a_row``, ``end_reason``
+    taken out this step, picked or not), ``attempts`` (attempts so far), ``pushes`` (pushes so far),
+    ``failed_in_a_row``, ``end_reason``
     (:data:`END_REASONS` or None), ``instances`` (:meth:`instance_poses`), ``instance_segmentation`` ((H, W)
     int32 instance id per pixel of the wrist image, -1 elsewhere; None without images), ``T_world_camera``,
     ``T_camera_reportedcamera``, ``sensor``, ``renderer``, ``background``, ``backdrop``; in grasp mode after a
@@ -248,6 +254,7 @@ class BinPickEnv(PickPlaceEnv):
         self._T_camera_reportedcamera = np.eye(4)
         self._episode_over = True
         self._steps = 0
+        self._pushes = 0
         self._failed_in_a_row = 0
         self._ee_yaw_rad = 0.0
         self._phase = "pick"
@@ -339,7 +346,8 @@ class BinPickEnv(PickPlaceEnv):
             "backdrop": None if self._backdrop_settings is None else dict(self._backdrop_settings),
             "target": self.target,
             "targets_left": self.task.targets_left(),
-            "attempts": self._steps,
+            "attempts": self._steps - self._pushes,
+            "pushes": self._pushes,
             "failed_in_a_row": self._failed_in_a_row,
             "instances": self.instance_poses(),
             "instance_segmentation": self.instance_segmentation(),
@@ -364,7 +372,7 @@ class BinPickEnv(PickPlaceEnv):
         self._phase, self._regrasp_instance = "pick", None
         self._T_camera_reportedcamera = sample_calibration_error(self.sensor, self.np_random)
         self._episode_over = False
-        self._steps = 0
+        self._steps = self._pushes = 0
         self._failed_in_a_row = 0
         self._ee_yaw_rad = float(OBSERVATION_YAW_RAD)
         self._randomise_backdrop(seed)
@@ -388,9 +396,9 @@ class BinPickEnv(PickPlaceEnv):
         if self.station_xy_m is not None:  # grasps at the regrasp station too
             x0, x1, y0, y1 = station_bounds(self.station_xy_m)
             low[:2], high[:2] = np.minimum(low[:2], [x0, y0]), np.maximum(high[:2], [x1, y1])
-        # One more element: the grasp kind's index in GRASP_KINDS (rounded to the nearest).
+        # One more element: the step kind's index in STEP_KINDS (rounded to the nearest).
         low = np.append(low, 0.0).astype(np.float32)
-        high = np.append(high, float(len(GRASP_KINDS) - 1)).astype(np.float32)
+        high = np.append(high, float(len(STEP_KINDS) - 1)).astype(np.float32)
         return gym.spaces.Box(low, high, dtype=np.float32)
 
     def step(self, action):
@@ -400,17 +408,23 @@ class BinPickEnv(PickPlaceEnv):
 
     def _with_grasp_kind(self, action: Any) -> Any:
         """A grasp action of 4 numbers with the kind "across" appended (their meaning before the kind existed);
-        DonGymError for a kind that is not one of :data:`~don_gym.sim.script.GRASP_KINDS`' indices."""
+        DonGymError for a kind that is not one of :data:`~don_gym.sim.script.STEP_KINDS`' indices, and for a push
+        at the regrasp station (a grasp is expected there)."""
         try:
             numbers = np.asarray(action, dtype=np.float64).reshape(-1)
         except (TypeError, ValueError):
             return action  # the parent names it
         if numbers.shape == (4,):
             return np.append(numbers, 0.0)
-        if numbers.shape == (5,) and not (np.isfinite(numbers[4]) and -0.5 < numbers[4] < len(GRASP_KINDS) - 0.5):
+        if numbers.shape == (5,) and not (np.isfinite(numbers[4]) and -0.5 < numbers[4] < len(STEP_KINDS) - 0.5):
             raise DonGymError(
-                f"action[4]={numbers[4]!r} (grasp kind): expected the index of one of {list(GRASP_KINDS)} "
-                f"(0..{len(GRASP_KINDS) - 1})"
+                f"action[4]={float(numbers[4])!r} (grasp kind): expected the index of one of {list(STEP_KINDS)} "
+                f"(0..{len(STEP_KINDS) - 1})"
+            )
+        if numbers.shape == (5,) and self._phase == "regrasp" and STEP_KINDS[int(round(numbers[4]))] == "push":
+            raise DonGymError(
+                f"action[4]={float(numbers[4])!r} (push) at the regrasp station: expected a grasp kind there "
+                f"(0..{len(STEP_KINDS) - 2})"
             )
         return numbers
 
@@ -433,8 +447,9 @@ class BinPickEnv(PickPlaceEnv):
     def _finish_step(self, outcome: str, picked: Instance | None, cleared: list[int], extra: dict[str, Any]):
         # A part set down at the station is half an attempt: the attempt ends with the regrasp's step.
         self._steps += outcome != "set_down"
+        self._pushes += outcome == "pushed"
         targets_left = self.task.targets_left()
-        if self.control == "grasp":
+        if self.control == "grasp" and outcome != "pushed":  # a push is no attempt: the count goes on past it
             self._failed_in_a_row = self._failed_in_a_row + 1 if outcome == "fail" else 0
         end_reason = None
         if outcome == "set_down":
@@ -461,7 +476,9 @@ class BinPickEnv(PickPlaceEnv):
         return observation, float(outcome == "grasp_and_place"), terminated, truncated, info
 
     def _step_grasp(self, action: np.ndarray):
-        kind = GRASP_KINDS[int(round(float(action[4])))]
+        kind = STEP_KINDS[int(round(float(action[4])))]
+        if kind == "push":
+            return self._step_push(action)
         if self._phase == "regrasp":
             return self._step_regrasp(action, kind)
         # The program is written for the target part (its opening, its grasp point's axial position for the
@@ -492,6 +509,22 @@ class BinPickEnv(PickPlaceEnv):
             "regrasp": False,
         }
         return self._end_grasp_step(outcome, picked, extra)
+
+    def _step_push(self, action: np.ndarray):
+        """A push (:meth:`~don_gym.sim.script.GraspPlaceScript.push`): the fingers stop on the first instance in
+        play, the bin or the table they touch."""
+        obstacles = [instance.body.body_id for instance in self.task.in_play()]
+        obstacles += [self.task.bin_id, self.task.table_id]
+        trace = GraspPlaceScript(self.sim, self.robot, self.task).push(action[:2], float(action[3]), obstacles)
+        extra = {
+            "lifted": False,
+            "placement_distance_m": None,
+            "placement_axis_error_rad": None,
+            "sim_time_s": trace.sim_time_s,
+            "grasp_kind": "push",
+            "regrasp": False,
+        }
+        return self._end_grasp_step("pushed", None, extra)
 
     def _set_down_spec(self) -> tuple[np.ndarray, float, int]:
         """Where :meth:`~don_gym.sim.script.GraspPlaceScript.set_down` puts a part held standing: its axis over

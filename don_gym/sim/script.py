@@ -6,7 +6,7 @@ places it into the cradle; nothing is attached, friction alone holds the part.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -51,6 +51,14 @@ WRIST_MARGIN_RAD = 0.08
 #: pick env's grasp), along it (the fingers on the two end faces, the axis across the fingers), or across a part
 #: standing on an end (its axis vertical in the hand).
 GRASP_KINDS = ("across", "along", "standing")
+#: What a step of the bin env does (its 5th action element is the index): a grasp of :data:`GRASP_KINDS`, or a
+#: push (:meth:`GraspPlaceScript.push`) that rolls a part lying against a wall away from it, lifting nothing.
+STEP_KINDS = (*GRASP_KINDS, "push")
+#: A push: the closed fingers come down on the part until they touch something, press this much (m) further, move
+#: this far (m) at this speed (m/s) and go up again. A round part pressed from above rolls under the fingers.
+PUSH_PRESS_M = 0.005
+PUSH_DISTANCE_M = 0.05
+PUSH_SPEED_M_S = 0.05
 
 
 def end_faces_axial_position_m(model: ObjectModel) -> float:
@@ -343,6 +351,36 @@ class GraspPlaceScript:
             if calm >= 5:
                 break
         trace.left_workspace = task.left_workspace()
+
+    def push(self, press_xy: np.ndarray, push_yaw_rad: float, obstacle_ids: Sequence[int]) -> ScriptTrace:
+        """Push a part by rolling it: the gripper closed, down at ``press_xy`` (world m) until a finger touches one
+        of the bodies ``obstacle_ids`` (the part's top, else whatever lies there; the table at the latest), press
+        :data:`PUSH_PRESS_M` further, move :data:`PUSH_DISTANCE_M` towards world yaw ``push_yaw_rad`` (rad) and go
+        up. The fingers side by side across the push, so a part lying across it is pressed along its length."""
+        robot, trace = self.robot, self.trace
+        press = np.asarray(press_xy, dtype=np.float64)[:2]
+        floor_z = TABLE_TOP_Z_M + MIN_TCP_HEIGHT_M
+        direction = np.array([np.cos(push_yaw_rad), np.sin(push_yaw_rad), 0.0])
+        above = np.array([press[0], press[1], TABLE_TOP_Z_M + APPROACH_HEIGHT_M])
+        wrist = min((self._wrist_for(above, yaw) for yaw in (push_yaw_rad, push_yaw_rad + np.pi)), key=abs)
+        wrist = float(np.clip(wrist, ARM_LOWER_RAD[6] + WRIST_MARGIN_RAD, ARM_UPPER_RAD[6] - WRIST_MARGIN_RAD))
+
+        def touching() -> bool:
+            return any(any(robot.finger_contacts(int(body))) for body in obstacle_ids)
+
+        trace.phases.append("approach")
+        robot.command_gripper(0.0)
+        self.move(above, wrist, FREE_SPEED_M_S)
+        trace.phases.append("descend")
+        self.move(np.array([press[0], press[1], floor_z]), wrist, APPROACH_SPEED_M_S, guard=touching, settle_s=0.0)
+        trace.phases.append("push")
+        pressed = self._tcp.copy()
+        pressed[2] = max(floor_z, pressed[2] - PUSH_PRESS_M)
+        self.move(pressed, wrist, PLACE_SPEED_M_S, settle_s=0.0)
+        self.move(pressed + PUSH_DISTANCE_M * direction, wrist, PUSH_SPEED_M_S, settle_s=0.0)
+        trace.phases.append("retract")
+        self.move(self._tcp + np.array([0.0, 0.0, APPROACH_HEIGHT_M]), wrist, RETRACT_SPEED_M_S, settle_s=0.0)
+        return trace
 
     def set_down(self, xy: np.ndarray, hand_yaw_rad: float, ledge_id: int) -> None:
         """Carry the part held to above ``xy`` (world m) with the hand at ``hand_yaw_rad`` (or that plus pi, the
