@@ -5,8 +5,9 @@ agent on the pile's optimal descriptors, the toolcap's shipped networks, and the
 ``--multi-part``, by default the shipped ones), the same seeded piles are picked one instance per attempt, target
 toolcap, a part lifted standing regrasped at the station (:func:`don_gym.evaluation.bin_benchmark.run_bin_benchmark`):
 placed per target instance (the headline), picks and lift success per attempt, piles fully placed, give-ups,
-wrong-part lifts, flips, regrasps and their success, each with its 95% Wilson interval, and placements per hour of
-simulated time (motion and the method's measured perception charged), with each method's ratios to the oracle on the
+wrong-part lifts, flips, regrasps and their success, each with its 95% Wilson interval, the pushes (parts rolled
+away from a wall), and placements per hour of simulated time (motion and the method's measured perception
+charged), with each method's ratios to the oracle on the
 same piles (:mod:`don_gym.evaluation.bin_metrics`). The piles are the bin test piles (from
 :data:`don_gym.evaluation.splits.BIN_TEST_SEED`, used for no decision); ``--split dev`` runs the development piles
 (from :data:`~don_gym.evaluation.splits.BIN_DEVELOPMENT_SEED`) into section ``bin-dev``. Records RESULTS.md section
