@@ -192,8 +192,8 @@ including it (the descriptor agent, don_gym.agents.BinAxisGraspAgent). Reported 
 piles: placed per target instance (the headline), picks and lift success per attempt, piles fully placed,
 piles given up, wrong-part lifts, flips, regrasps and their success, each with its 95% Wilson interval;
 the pushes (parts rolled away from a wall, not attempts); placements per hour of simulated time (motion and
-the method's measured perception time charged) and the ratios to the oracle's. --shard i/n runs piles i, i+n, ... into OUT/shards/; --merge then makes the whole
-run's outputs.
+the method's measured perception time charged) and the ratios to the oracle's. --shard i/n runs piles i, i+n,
+... into OUT/shards/; --merge then makes the whole run's outputs.
 """
 
 BIN_EPILOG = """\
