@@ -56,6 +56,7 @@ With each keypoint's last seen place and age (``--sac-memory``) and the DON on a
 Expert demonstrations (``--sac-demos N``): each SAC run's replay buffer starts with N episodes of the privileged
 ``EndEffectorExpert`` from the task's start, stepped in the run's own observation pipeline (``demonstrations.npz``
 in the run's directory); ``--sac-bc W`` adds a Q-filtered behaviour-cloning step on them (``agents/rl_demos.py``);
+``--sac-updates-per-step K`` takes K gradient steps per env step (more learning from the same samples);
 ``--section`` names the RESULTS.md section so such a run does not replace ``rl-sac-custom``::
 
     python benchmarks/bench_rl.py --only sac --sac-memory --sac-window 192 --sac-steps 80000 \
@@ -469,8 +470,8 @@ def _sac_steps(args: argparse.Namespace) -> dict[str, int]:
 def sac_runs(args: argparse.Namespace, keypoint_model: str) -> list[TrainingRun]:
     """The SAC part's runs, one per keypoint source in :data:`SAC_SOURCES`' order, same seeds and settings."""
     algo = {"learning_starts": args.sac_learning_starts, "gamma": args.sac_gamma}
-    if args.sac_envs > 1:
-        algo["gradient_steps"] = -1  # a gradient step per env step, whatever the number of envs
+    # Gradient steps per env step of every env: updates per step times the envs stepped together.
+    algo["gradient_steps"] = args.sac_updates_per_step * args.sac_envs
     train_kwargs = _sac_env_kwargs(args, keypoint_model)
     if args.sac_hand_starts:
         train_kwargs["hand_starts"] = args.sac_hand_starts
@@ -582,7 +583,8 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         f"{args.image_size[0]}x{args.image_size[1]} wrist images"
         + (f", in a {args.sac_window}-pixel window around the part" if args.sac_window else "")
         + f"), `true` (exact, always seen). {times}; {starts_text}. Learning starts {args.sac_learning_starts}, "
-        f"discount {args.sac_gamma:g}, MLP 256x256, seed {args.seed}. "
+        f"discount {args.sac_gamma:g}, {args.sac_updates_per_step} gradient step(s) per env step, MLP 256x256, "
+        f"seed {args.seed}. "
         f"Runs: `{_shown(args.out)}/sac_{args.sac_goal}_*`. Learning curves "
         f"(training episodes, all starts, beside a random policy on the same starts): `{_shown(figure)}`.",
         "",
@@ -649,7 +651,7 @@ PART_SETTINGS = {
     "sac": (
         "sac_goal", "sac_envs", "sac_steps", "sac_don_steps", "sac_max_steps", "sac_learning_starts",
         "sac_eval_episodes", "sac_hand_starts", "sac_memory", "sac_window", "vectorize", "sac_demos", "sac_bc",
-        "sac_gamma",
+        "sac_gamma", "sac_updates_per_step",
     ),
 }  # fmt: skip
 COMMON_SETTINGS = ("keypoint_model", "sensor", "seed", "image_size", "train_device")
@@ -724,6 +726,10 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--sac-gamma", type=float, default=rl.DEFAULT_ALGO_KWARGS["sac-her"]["gamma"],
         help="SAC's discount (default %(default)s; an episode of N steps wants about 1 - 1/N)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--sac-updates-per-step", type=positive_int, default=1,
+        help="SAC's gradient steps per env step (the update-to-data ratio; default %(default)s)",
     )  # fmt: skip
     parser.add_argument(
         "--sac-memory", action="store_true",

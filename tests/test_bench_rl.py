@@ -100,17 +100,21 @@ def test_sac_memory_and_window_reach_every_sac_run_and_record_apart(tmp_path: Pa
 
 def test_demonstrations_and_discount_reach_every_sac_run_and_bad_options_are_refused(tmp_path: Path, capsys) -> None:
     parser = bench_rl._parser()
-    args = parser.parse_args(["--out", str(tmp_path), "--sac-demos", "5", "--sac-bc", "0.5", "--sac-gamma", "0.98"])
-    assert bench_rl._custom_settings(parser, args, "sac") == ["sac_demos", "sac_bc", "sac_gamma"]
+    options = ["--sac-demos", "5", "--sac-bc", "0.5", "--sac-gamma", "0.98", "--sac-updates-per-step", "2"]
+    args = parser.parse_args(["--out", str(tmp_path), *options, "--sac-envs", "3"])
+    custom = ["sac_envs", "sac_demos", "sac_bc", "sac_gamma", "sac_updates_per_step"]
+    assert sorted(bench_rl._custom_settings(parser, args, "sac")) == sorted(custom)
     args.image_size = (64, 48)
     for run in bench_rl.sac_runs(args, "oracle"):
         assert run.kwargs["demonstrations"] == 5 and run.kwargs["bc_weight"] == 0.5
         assert run.kwargs["algo_kwargs"]["gamma"] == 0.98
+        assert run.kwargs["algo_kwargs"]["gradient_steps"] == 6  # 2 per env step of each of the 3 envs
     for options, message in (
         (["--only", "sac", "--sac-bc", "1"], "bc_weight=1.0 needs demonstrations > 0"),
         (["--only", "sac", "--sac-demos", "-1"], "--sac-demos -1"),
         (["--only", "sac", "--sac-demos", "2", "--sac-bc", "nan"], "bc_weight=nan"),
         (["--only", "sac", "--section", "rl-sac-x"], "--section 'rl-sac-x'"),
+        (["--only", "sac", "--sac-updates-per-step", "0"], "--sac-updates-per-step"),
         (["--sac-demos", "2", "--section", "rl-sac-x"], "--section 'rl-sac-x'"),
     ):
         with pytest.raises(SystemExit) as exit_info:
