@@ -239,18 +239,15 @@ def run_pile(env: Any, agent: Any, method: str, pile: int, seed: int) -> dict[st
             continue  # the attempt goes on at the regrasp station
         if info["outcome"] == "pushed":
             pushes += 1  # no attempt: its motion is charged to the pace all the same
-            if terminated or truncated:
-                end_reason = info["end_reason"]
-                break
-            continue
-        attempts += 1
-        counts[info["outcome"]] += 1
-        if info.get("regrasp"):
-            regrasps += 1
-            regrasp_placed += info["outcome"] == "grasp_and_place"
-        if info["outcome"] in ("grasp_and_place", "grasp_only") and kind in ("across", "along"):
-            axis_lifts += 1
-            flipped += _yaw_error(float(action[3]), poses[info["instance"]], plus_axis) > FLIP_THRESHOLD_RAD
+        else:
+            attempts += 1
+            counts[info["outcome"]] += 1
+            if info.get("regrasp"):
+                regrasps += 1
+                regrasp_placed += info["outcome"] == "grasp_and_place"
+            if info["outcome"] in ("grasp_and_place", "grasp_only") and kind in ("across", "along"):
+                axis_lifts += 1
+                flipped += _yaw_error(float(action[3]), poses[info["instance"]], plus_axis) > FLIP_THRESHOLD_RAD
         if terminated or truncated:
             end_reason = info["end_reason"]
             break

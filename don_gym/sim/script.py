@@ -152,6 +152,12 @@ class GraspPlaceScript:
         q1 = np.arctan2(position[1] - self.base_xy[1], position[0] - self.base_xy[0])
         return wrap_angle(q1 - yaw_rad + np.pi / 4)
 
+    def _wrist_nearer_middle(self, position: np.ndarray, hand_yaw_rad: float) -> float:
+        """Joint-7 angle (rad) for a hand yaw of ``hand_yaw_rad`` or that plus pi (the fingers are symmetric), the
+        one nearer the middle of its range, kept :data:`WRIST_MARGIN_RAD` inside its limits."""
+        wrist = min((self._wrist_for(position, yaw) for yaw in (hand_yaw_rad, hand_yaw_rad + np.pi)), key=abs)
+        return float(np.clip(wrist, ARM_LOWER_RAD[6] + WRIST_MARGIN_RAD, ARM_UPPER_RAD[6] - WRIST_MARGIN_RAD))
+
     def _step(self, count: int) -> None:
         self.sim.step(count)
         self.trace.sim_time_s += count * self.sim.time_step_s
@@ -362,8 +368,7 @@ class GraspPlaceScript:
         floor_z = TABLE_TOP_Z_M + MIN_TCP_HEIGHT_M
         direction = np.array([np.cos(push_yaw_rad), np.sin(push_yaw_rad), 0.0])
         above = np.array([press[0], press[1], TABLE_TOP_Z_M + APPROACH_HEIGHT_M])
-        wrist = min((self._wrist_for(above, yaw) for yaw in (push_yaw_rad, push_yaw_rad + np.pi)), key=abs)
-        wrist = float(np.clip(wrist, ARM_LOWER_RAD[6] + WRIST_MARGIN_RAD, ARM_UPPER_RAD[6] - WRIST_MARGIN_RAD))
+        wrist = self._wrist_nearer_middle(above, push_yaw_rad)
 
         def touching() -> bool:
             return any(any(robot.finger_contacts(int(body))) for body in obstacle_ids)
@@ -390,8 +395,7 @@ class GraspPlaceScript:
         task, robot = self.task, self.robot
         part_id = task.part.body_id
         target = np.array([xy[0], xy[1], TABLE_TOP_Z_M + CARRY_HEIGHT_M])
-        wrist = min((self._wrist_for(target, yaw) for yaw in (hand_yaw_rad, hand_yaw_rad + np.pi)), key=abs)
-        wrist = float(np.clip(wrist, ARM_LOWER_RAD[6] + WRIST_MARGIN_RAD, ARM_UPPER_RAD[6] - WRIST_MARGIN_RAD))
+        wrist = self._wrist_nearer_middle(target, hand_yaw_rad)
         self.trace.phases.append("carry")
         self.move(target, wrist, FREE_SPEED_M_S)
 
