@@ -12,7 +12,8 @@ of those instances with the same rule (:func:`rank_grasps`):
   apart in 3D (with the observed depth) and the depth between them shows no gap (two rings of neighbouring
   instances have the bin's floor or another part between them) (:func:`pair_ring_candidates`); a part standing
   upright, whose rim both rings' descriptors match at one spot, is found from its top
-  (:func:`standing_from_coincident_rings`).
+  (:func:`standing_from_coincident_rings`). When nothing is found, a looser threshold, then one end ring with the
+  middle ring (:func:`pair_with_middle_ring`) or a standing part under one ring's match, before the agent gives up.
 - :class:`BinOracleAgent` takes the true poses of the target instances the wrist image shows (``info``).
 
 Grasps (:func:`grasp_candidates`): the axis grasp of :class:`~don_gym.agents.AxisGraspAgent` (fingers across
@@ -29,7 +30,7 @@ first), least occluded.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -432,6 +433,54 @@ def pair_ring_candidates(
     return estimates
 
 
+def pair_with_middle_ring(
+    rings: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    middle: tuple[np.ndarray, np.ndarray, np.ndarray],
+    depth_m: np.ndarray,
+    T_world_camera: np.ndarray,
+    targets: AxisEndTargets,
+    floor_z_m: float | None = None,
+) -> list[InstanceEstimate]:
+    """Instances from one end ring's candidates and the middle ring's (the ring halfway between the two ends,
+    :func:`middle_ring_points`), each given as ``(points_world (M, 3), pixels (M, 2), distances (M,))``: the minus
+    end (``rings[0]``) then the plus end (``rings[1]``) paired with ``middle`` as :func:`pair_ring_candidates` pairs
+    the two ends, at half their spacing, the far end's axis point put as far beyond the middle. A network's matches
+    of one end ring can fall short of it, towards the middle (lying toolcaps on the development piles: 4 to 12 mm
+    apart where 24 mm was due); the other end and the middle then still give the axis. Pairs of the minus end are
+    tried first; each middle candidate serves one instance."""
+    middle_position = float(np.mean(targets.axial_positions_m))
+    middle_radius = float(np.max(targets.radii_m))
+    found: list[InstanceEstimate] = []
+    used_middle: set[int] = set()
+    for k in range(2):
+        positions = [float(targets.axial_positions_m[k]), middle_position]
+        radii = [float(targets.radii_m[k]), middle_radius]
+        order = [0, 1] if k == 0 else [1, 0]  # minus-end first, as pair_ring_candidates expects
+        half = replace(
+            targets,
+            axial_positions_m=np.asarray([positions[i] for i in order]),
+            radii_m=np.asarray([radii[i] for i in order]),
+        )
+        candidates = [rings[k], middle] if k == 0 else [middle, rings[k]]
+        for estimate in pair_ring_candidates(
+            [c[0] for c in candidates], [c[1] for c in candidates], [c[2] for c in candidates],
+            depth_m, T_world_camera, half, floor_z_m=floor_z_m,
+        ):  # fmt: skip
+            middle_index = None if estimate.rings is None else estimate.rings[1 if k == 0 else 0]
+            if middle_index in used_middle:
+                continue
+            used_middle.add(middle_index)
+            end_point, middle_point = (
+                (estimate.axis_points_world[0], estimate.axis_points_world[1])
+                if k == 0
+                else (estimate.axis_points_world[1], estimate.axis_points_world[0])
+            )
+            far_point = 2.0 * middle_point - end_point
+            axis_points = np.stack([end_point, far_point] if k == 0 else [far_point, end_point])
+            found.append(replace(estimate, axis_points_world=axis_points, rings=None))
+    return found
+
+
 # ------------------------------------------------------------------------------------------------
 # Agents
 # ------------------------------------------------------------------------------------------------
@@ -569,6 +618,8 @@ class BinAxisGraspAgent(_BinAgentBase):
             each candidate to its ring's arc middle.
         fallback_match_fraction: when no instance is found, the search is run once more at this looser fraction
             (None: never), before the agent gives up.
+        last_resort: when neither search finds an instance, take one from an end ring and the middle ring, or a
+            part standing under one ring's match (:meth:`_last_resort_estimates`), before the agent gives up.
     """
 
     def __init__(
@@ -580,6 +631,7 @@ class BinAxisGraspAgent(_BinAgentBase):
         match_fraction: float = DEFAULT_MATCH_FRACTION,
         temperature: float = DEFAULT_SOFT_TEMPERATURE,
         fallback_match_fraction: float | None = DEFAULT_FALLBACK_MATCH_FRACTION,
+        last_resort: bool = True,
     ) -> None:
         object_model = _target_model(env)
         if isinstance(model, (str, Path)) and str(model) == "oracle":
@@ -612,6 +664,9 @@ class BinAxisGraspAgent(_BinAgentBase):
             None if fallback_match_fraction is None else float(fallback_match_fraction) * ring_distance
         )
         self.temperature = float(temperature)
+        #: When no instance is found at either threshold, look once more for one end ring with the middle ring, and
+        #: for a standing part under a single ring's match, before giving up (:meth:`_last_resort_estimates`).
+        self.last_resort = bool(last_resort)
         self._station_agent: Any = None
 
     @property
@@ -626,6 +681,8 @@ class BinAxisGraspAgent(_BinAgentBase):
         found = self._estimates_below(distances, middle, obs, self.match_threshold)
         if not found and self.fallback_threshold is not None:
             found = self._estimates_below(distances, middle, obs, self.fallback_threshold)
+        if not found and self.last_resort:
+            found = self._last_resort_estimates(distances, middle, obs)
         return found
 
     def _estimates_below(
@@ -636,24 +693,9 @@ class BinAxisGraspAgent(_BinAgentBase):
         depth = np.asarray(obs["depth"], dtype=np.float32)
         intrinsics = CameraIntrinsics.from_array(obs["camera_intrinsics"])
         T_world_camera = np.asarray(obs["camera_pose"], dtype=np.float64)
-        valid = depth[depth > 0]
-        typical_z = float(np.median(valid)) if len(valid) else 0.45
-        # One candidate per ring: minima closer than a ring's diameter are one ring's arc.
-        window_px = intrinsics.fx * self.targets.window_m / typical_z
-        points, pixels, match_distances = [], [], []
-        for k in range(2):
-            uv, distance = local_matches(
-                distances[k],
-                threshold,
-                window_px,
-                self.temperature * self.source.descriptor_scale,
-                MAX_CANDIDATES_PER_RING,
-            )
-            points_camera, ok = robust_point_from_depth(depth, intrinsics, uv) if len(uv) else (np.zeros((0, 3)), [])
-            ok = np.asarray(ok, dtype=bool)
-            points.append(transform_points(T_world_camera, points_camera[ok]) if ok.any() else np.zeros((0, 3)))
-            pixels.append(uv[ok] if len(uv) else uv)
-            match_distances.append(distance[ok] if len(uv) else distance)
+        points, pixels, match_distances = zip(
+            *(self._ring_candidates(distances[k], obs, threshold) for k in range(2)), strict=True
+        )
         found = pair_ring_candidates(
             points, pixels, match_distances, depth, T_world_camera, self.targets, middle, threshold,
             floor_z_m=TABLE_TOP_Z_M,
@@ -667,6 +709,50 @@ class BinAxisGraspAgent(_BinAgentBase):
         cloud = world_point_cloud(depth, intrinsics, T_world_camera)
         standing = standing_from_coincident_rings(points, found, cloud, self.object_model, self.targets, TABLE_TOP_Z_M)
         return [*found, *standing]
+
+    def _ring_candidates(
+        self, distances: np.ndarray, obs: Mapping[str, Any], threshold: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One reference's candidate matches below ``threshold`` in its distance image (H, W): their (M, 3) world
+        points, (M, 2) pixels and (M,) distances, those without depth left out."""
+        depth = np.asarray(obs["depth"], dtype=np.float32)
+        intrinsics = CameraIntrinsics.from_array(obs["camera_intrinsics"])
+        valid = depth[depth > 0]
+        typical_z = float(np.median(valid)) if len(valid) else 0.45
+        # One candidate per ring: minima closer than a ring's diameter are one ring's arc.
+        window_px = intrinsics.fx * self.targets.window_m / typical_z
+        uv, distance = local_matches(
+            distances, threshold, window_px, self.temperature * self.source.descriptor_scale, MAX_CANDIDATES_PER_RING
+        )
+        if not len(uv):
+            return np.zeros((0, 3)), uv, distance
+        points_camera, ok = robust_point_from_depth(depth, intrinsics, uv)
+        ok = np.asarray(ok, dtype=bool)
+        T_world_camera = np.asarray(obs["camera_pose"], dtype=np.float64)
+        points = transform_points(T_world_camera, points_camera[ok]) if ok.any() else np.zeros((0, 3))
+        return points, uv[ok], distance[ok]
+
+    def _last_resort_estimates(
+        self, distances: np.ndarray, middle: np.ndarray, obs: Mapping[str, Any]
+    ) -> list[InstanceEstimate]:
+        """When neither search found an instance (:attr:`last_resort`): instances from one end ring and the middle
+        ring (:func:`pair_with_middle_ring`), then parts standing under a single ring's match
+        (:func:`standing_from_coincident_rings` with ``single_ring=True``), at the fallback threshold (the match
+        threshold without one). ``distances`` (2, H, W) to the two rings' references, ``middle`` (H, W) to the
+        middle ring's."""
+        threshold = self.match_threshold if self.fallback_threshold is None else self.fallback_threshold
+        rings = [self._ring_candidates(distances[k], obs, threshold) for k in range(2)]
+        middle_ring = self._ring_candidates(middle, obs, threshold)
+        depth = np.asarray(obs["depth"], dtype=np.float32)
+        T_world_camera = np.asarray(obs["camera_pose"], dtype=np.float64)
+        found = pair_with_middle_ring(rings, middle_ring, depth, T_world_camera, self.targets, TABLE_TOP_Z_M)
+        if found:
+            return found
+        cloud = world_point_cloud(depth, CameraIntrinsics.from_array(obs["camera_intrinsics"]), T_world_camera)
+        points = [r[0] for r in rings]
+        return standing_from_coincident_rings(
+            points, [], cloud, self.object_model, self.targets, TABLE_TOP_Z_M, single_ring=True
+        )
 
     def station_estimates(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None) -> list[InstanceEstimate]:
         """The part set down alone at the regrasp station, as the single-part axis agent
@@ -715,6 +801,7 @@ def standing_from_coincident_rings(
     object_model: ObjectModel,
     targets: AxisEndTargets,
     floor_z_m: float,
+    single_ring: bool = False,
 ) -> list[InstanceEstimate]:
     """Parts standing upright on the bin floor, which from above show their upper end and no ring side: there
     both rings' descriptors match the rim at one spot. Each minus-end and plus-end candidate left unpaired by
@@ -722,19 +809,27 @@ def standing_from_coincident_rings(
     observed points around it at its height (``cloud_world`` (N, 3)) make a top whose centre, found by moving to the
     mean of those within the part's radius (a few times), lies one part length above the floor (within
     :data:`STANDING_FLOOR_M`). The estimate's axis is vertical through that centre, +axis up (the two ends are not
-    told apart: a grasp across a standing part does not need it)."""
+    told apart: a grasp across a standing part does not need it). ``single_ring``: any one candidate of either
+    ring may mark the top (a network's match of the lower ring can lie at the part's foot, seen past the top, or
+    nowhere; standing toolcaps on the development piles); the height check alone then tells a standing part from
+    a lying one."""
     length, diameter = lying_footprint_m(object_model)
     axial = (np.asarray(object_model.mesh.vertices, dtype=np.float64) - object_model.center_of_mass) @ np.asarray(
         object_model.plus_axis, dtype=np.float64
     )
     used = [{e.rings[k] for e in estimates if e.rings is not None} for k in range(2)]
     minus, plus = (np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in points_world)
+    if single_ring:
+        # Every candidate alone, each as both ends of a pair: the minus ring's first, then the plus ring's.
+        seeds = np.concatenate([minus[[i for i in range(len(minus)) if i not in used[0]]],
+                                plus[[j for j in range(len(plus)) if j not in used[1]]]])  # fmt: skip
+        minus, plus, used = seeds, seeds, [set(), set()]
     out: list[InstanceEstimate] = []
     for i, a in enumerate(minus):
         if i in used[0]:
             continue
         for j, b in enumerate(plus):
-            if j in used[1] or np.linalg.norm(a - b) > COINCIDENT_RADII * diameter / 2:
+            if j in used[1] or (single_ring and j != i) or np.linalg.norm(a - b) > COINCIDENT_RADII * diameter / 2:
                 continue
             top = (a + b) / 2
             centre = top[:2].copy()

@@ -327,3 +327,75 @@ def test_a_part_standing_upright_is_found_from_its_top():
     # The same top 6 mm lower is a part lying down (its top is its diameter high), not one standing.
     lower = cloud - [0, 0, 0.006]
     assert standing_from_coincident_rings([rim - [0, 0, 0.006]] * 2, [], lower, toolcap, targets, 0.0) == []
+
+
+def test_one_end_ring_and_the_middle_ring_give_the_axis_when_the_other_end_falls_short():
+    from don_gym.agents.bin_agent import pair_with_middle_ring
+
+    toolcap = load_object("toolcap")
+    targets = axis_end_targets(toolcap)
+    a_minus, a_plus = (float(v) for v in targets.axial_positions_m)
+    middle = (a_minus + a_plus) / 2
+    camera = np.eye(4)
+    camera[:3, 3] = [0.0, 0.0, 0.5]
+    # A part lying along +x, axis 0.02 m above the floor, seen from straight above. Its plus ring's match fell 15 mm
+    # short, towards the middle (as a network's did on development piles): the two ends do not pair.
+    axis_z, r, r_middle = 0.02, float(targets.radii_m[0]), float(np.max(targets.radii_m))
+    minus = np.array([[a_minus, 0.0, axis_z + r]])
+    plus_short = np.array([[a_plus - 0.015, 0.0, axis_z + float(targets.radii_m[1])]])
+    middle_point = np.array([[middle, 0.0, axis_z + r_middle]])
+    depth = np.full((60, 60), 0.5 - axis_z - r, np.float32)
+    pixels = [np.array([[10.0, 30.0]]), np.array([[25.0, 30.0]]), np.array([[18.0, 30.0]])]
+    zero = [np.zeros(1)] * 2
+    assert pair_ring_candidates([minus, plus_short], pixels[:2], zero, depth, camera, targets) == []
+    found = pair_with_middle_ring(
+        [(minus, pixels[0], np.zeros(1)), (plus_short, pixels[1], np.zeros(1))],
+        (middle_point, pixels[2], np.zeros(1)), depth, camera, targets, floor_z_m=0.0,
+    )  # fmt: skip
+    assert len(found) == 1  # one middle match, one instance
+    np.testing.assert_allclose(found[0].axis_points_world, [[a_minus, 0, axis_z], [a_plus, 0, axis_z]], atol=1e-3)
+    # The plus end with the middle gives it the other way round when the minus ring is not matched at all.
+    plus = np.array([[a_plus, 0.0, axis_z + float(targets.radii_m[1])]])
+    found = pair_with_middle_ring(
+        [(np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)), (plus, pixels[1], np.zeros(1))],
+        (middle_point, pixels[2], np.zeros(1)), depth, camera, targets, floor_z_m=0.0,
+    )  # fmt: skip
+    assert len(found) == 1
+    np.testing.assert_allclose(found[0].axis_points_world, [[a_minus, 0, axis_z], [a_plus, 0, axis_z]], atol=1e-3)
+    # A middle match a whole spacing away is no partner.
+    far_middle = middle_point + [0.03, 0, 0]
+    assert (
+        pair_with_middle_ring(
+            [(minus, pixels[0], np.zeros(1)), (np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0))],
+            (far_middle, pixels[2], np.zeros(1)),
+            depth,
+            camera,
+            targets,
+            floor_z_m=0.0,
+        )  # fmt: skip
+        == []
+    )
+
+
+def test_a_standing_part_is_found_under_a_single_ring_s_match_as_a_last_resort():
+    from don_gym.agents.bin_agent import standing_from_coincident_rings
+    from don_gym.sim.bin_task import lying_footprint_m
+
+    toolcap = load_object("toolcap")
+    targets = axis_end_targets(toolcap)
+    length, diameter = lying_footprint_m(toolcap)
+    r, a = np.meshgrid(np.linspace(0, diameter / 2, 8), np.linspace(0, 2 * np.pi, 24))
+    disc = np.stack([0.10 + r.ravel() * np.cos(a.ravel()), 0.20 + r.ravel() * np.sin(a.ravel())], axis=1)
+    floor = np.stack(np.meshgrid(np.linspace(0.0, 0.2, 40), np.linspace(0.1, 0.3, 40)), axis=-1).reshape(-1, 2)
+    cloud = np.concatenate([np.c_[disc, np.full(len(disc), length)], np.c_[floor, np.zeros(len(floor))]])
+    # The minus ring matched on the rim; the plus ring's match lies at the part's foot, on the floor beside it.
+    rim = np.array([[0.10 + 0.8 * diameter / 2, 0.20, length]])
+    foot = np.array([[0.10 + diameter / 2 + 0.004, 0.20 - 0.02, 0.005]])
+    assert standing_from_coincident_rings([rim, foot], [], cloud, toolcap, targets, 0.0) == []
+    found = standing_from_coincident_rings([rim, foot], [], cloud, toolcap, targets, 0.0, single_ring=True)
+    assert len(found) == 1 and found[0].standing  # one part, however many of its matches
+    np.testing.assert_allclose(found[0].axis_points_world[:, :2], [[0.10, 0.20]] * 2, atol=0.003)
+    # The plus ring's match alone on the rim is enough too; a top a lying part's height is not a standing part.
+    assert len(standing_from_coincident_rings([np.zeros((0, 3)), rim], [], cloud, toolcap, targets, 0.0, True)) == 1
+    lower = cloud - [0, 0, 0.006]
+    assert standing_from_coincident_rings([rim - [0, 0, 0.006], foot], [], lower, toolcap, targets, 0.0, True) == []
