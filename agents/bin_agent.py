@@ -113,11 +113,29 @@ MAX_CANDIDATES_PER_RING = 16
 COINCIDENT_RADII = 1.0
 STANDING_TOP_M = 0.006
 STANDING_FLOOR_M = 0.005
+#: The top's centre moves to the mean of the points at its height at most this often, until it moves less (m).
+STANDING_CENTRE_ITERATIONS = 12
+STANDING_CENTRE_SETTLED_M = 0.0005
 #: A standing part is also grasped this far (m) below its upper end.
 RIM_GRASP_DEPTH_M = 0.012
 #: Grasp kinds (:data:`~don_gym.sim.script.GRASP_KINDS`), the preferred first: across the axis, along it (both
 #: placed in the cradle: the env's place knows the kind), across a standing part (which arrives upright).
 GRASP_KIND_PREFERENCE = ("across", "along", "standing")
+#: Axis refinement from the observed surface (:func:`refine_axis_with_depth`): the search's half-ranges of yaw (rad),
+#: sideways offset and height (m); below, its steps, the distance (m) from the part's surface within which a point
+#: counts as on it, how far above the floor (m) a point must lie, the fewest points near the instance to refine it
+#: and the most it uses (an even subset).
+REFINE_YAW_RAD = float(np.deg2rad(30.0))
+REFINE_OFFSET_M = 0.006
+REFINE_HEIGHT_M = 0.004
+#: (yaw rad, offset and height m) steps of the coarse search over the whole range, and of the fine one around its
+#: best (within one coarse step).
+REFINE_COARSE_STEPS = (float(np.deg2rad(6.0)), 0.002)
+REFINE_FINE_STEPS = (float(np.deg2rad(2.0)), 0.001)
+REFINE_TOLERANCE_M = 0.0015
+REFINE_ABOVE_FLOOR_M = 0.003
+REFINE_MIN_POINTS = 50
+REFINE_MAX_POINTS = 400
 #: When the preferred grasp's fingers would reach past the bin's walls (a part lying against a wall, its grasps all
 #: blocked), the agent pushes the part away from the wall first (the env's "push" step), at most this many times
 #: in a row before it tries the grasp anyway. 0: never push.
@@ -481,6 +499,109 @@ def pair_with_middle_ring(
     return found
 
 
+def radial_profile_m(object_model: ObjectModel, bins: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    """The part's outer radius along its axis: ``(axial_m (bins,), radius_m (bins,))``, the bins' centres (m from the
+    centre of mass along the +axis) and the largest distance of the mesh's vertices in each from the axis (a bin
+    without vertices takes its neighbours' larger)."""
+    relative = np.asarray(object_model.mesh.vertices, dtype=np.float64) - object_model.center_of_mass
+    plus_axis = np.asarray(object_model.plus_axis, dtype=np.float64)
+    along = relative @ plus_axis
+    radial = np.linalg.norm(relative - np.outer(along, plus_axis), axis=1)
+    edges = np.linspace(along.min(), along.max(), bins + 1)
+    index = np.clip(np.searchsorted(edges, along, side="right") - 1, 0, bins - 1)
+    radius = np.full(bins, np.nan)
+    for b in range(bins):
+        if (index == b).any():
+            radius[b] = radial[index == b].max()
+    for b in np.flatnonzero(np.isnan(radius)):
+        neighbours = radius[max(b - 1, 0) : b + 2]
+        radius[b] = np.nanmax(neighbours) if np.isfinite(neighbours).any() else np.nanmax(radius)
+    return (edges[:-1] + edges[1:]) / 2, radius
+
+
+def refine_axis_with_depth(
+    estimate: InstanceEstimate,
+    cloud_world: np.ndarray,
+    targets: AxisEndTargets,
+    profile: tuple[np.ndarray, np.ndarray],
+    floor_z_m: float,
+) -> InstanceEstimate:
+    """A lying instance's axis fitted to the observed surface: the yaw (within :data:`REFINE_YAW_RAD`), the sideways
+    offset (within :data:`REFINE_OFFSET_M`) and the height (within :data:`REFINE_HEIGHT_M`) for which the most
+    observed points (``cloud_world`` (N, 3), m) between the two rings lie on the part's surface (the radius of
+    ``profile``, :func:`radial_profile_m`, within :data:`REFINE_TOLERANCE_M`), the axis's tilt and its length along
+    it kept; which end is which stays the descriptors'. A network's ring matches put the axis some degrees off
+    (on the development piles, the grasps of ``bin/supervised-edge`` that lifted a toolcap but did not place it were
+    mostly 15 to 45 degrees off in yaw); the seen surface of a lying part holds its axis to a degree or two. The
+    estimate is kept as it is when it stands, when fewer than :data:`REFINE_MIN_POINTS` points lie near it, or
+    when no fit holds more points on the surface than the estimate itself."""
+    if estimate.standing:
+        return estimate
+    axial, radius = profile
+    a0, a1 = (float(v) for v in targets.axial_positions_m)
+    centre = estimate.axis_points_world.mean(axis=0)
+    direction = estimate.direction
+    reach = float(np.max(radius)) + REFINE_OFFSET_M + REFINE_TOLERANCE_M
+    half = abs(a1 - a0) / 2 + REFINE_OFFSET_M
+    cloud = np.asarray(cloud_world, dtype=np.float64).reshape(-1, 3)
+    relative = cloud - centre
+    near = (
+        (np.abs(relative @ direction) < half)
+        & (np.linalg.norm(relative - np.outer(relative @ direction, direction), axis=1) < reach)
+        & (cloud[:, 2] > floor_z_m + REFINE_ABOVE_FLOOR_M)
+    )
+    points = cloud[near]
+    if len(points) < REFINE_MIN_POINTS:
+        return estimate
+    # An even subset keeps the search to a few hundredths of a second per instance.
+    points = points[:: max(1, len(points) // REFINE_MAX_POINTS)]
+    middle_axial = (a0 + a1) / 2
+    lo, hi = sorted((a0, a1))
+
+    def surface_counts(centres: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """Points on the surface of the part whose axis runs along ``d`` (3,) through each of ``centres`` (K, 3)."""
+        rel = points[None] - centres[:, None]
+        along = rel @ d
+        across = np.linalg.norm(rel - along[..., None] * d, axis=-1)
+        position = along + middle_axial
+        on = np.abs(across - np.interp(position, axial, radius)) < REFINE_TOLERANCE_M
+        return (on & (position >= lo) & (position <= hi)).sum(axis=-1)
+
+    def turned(yaw: float) -> tuple[np.ndarray, np.ndarray]:
+        """The estimate's direction turned by ``yaw`` about the vertical (its tilt kept), and the horizontal unit
+        vector across it."""
+        c, s_ = np.cos(yaw), np.sin(yaw)
+        d = np.array([c * direction[0] - s_ * direction[1], s_ * direction[0] + c * direction[1], direction[2]])
+        side = np.cross([0.0, 0.0, 1.0], d)
+        return d, side / max(float(np.linalg.norm(side)), 1e-12)
+
+    own = int(surface_counts(centre[None], direction)[0])
+    best_count, best_yaw, best_shift = own, 0.0, np.zeros(2)
+    # Coarse to fine: the whole range at the coarse steps, then the fine steps around the coarse best.
+    for (yaw_step, shift_step), (yaw_range, shift_range) in (
+        (REFINE_COARSE_STEPS, (REFINE_YAW_RAD, np.array([REFINE_OFFSET_M, REFINE_HEIGHT_M]))),
+        (REFINE_FINE_STEPS, (REFINE_COARSE_STEPS[0] - REFINE_FINE_STEPS[0], np.full(2, REFINE_COARSE_STEPS[1]))),
+    ):
+        yaw_centre, shift_centre = best_yaw, best_shift.copy()
+        yaws = yaw_centre + np.arange(-yaw_range, yaw_range + 1e-9, yaw_step)
+        offsets = shift_centre[0] + np.arange(-shift_range[0], shift_range[0] + 1e-9, shift_step)
+        heights = shift_centre[1] + np.arange(-shift_range[1], shift_range[1] + 1e-9, shift_step)
+        shifts = np.stack(np.meshgrid(offsets, heights, indexing="ij"), axis=-1).reshape(-1, 2)
+        for yaw in sorted(yaws, key=lambda y: abs(y - yaw_centre)):
+            d, side = turned(float(yaw))
+            centres = centre + shifts[:, :1] * side + shifts[:, 1:] * np.array([0.0, 0.0, 1.0])
+            counts = surface_counts(centres, d)
+            k = int(np.argmax(counts))
+            if counts[k] > best_count:
+                best_count, best_yaw, best_shift = int(counts[k]), float(yaw), shifts[k]
+    best_direction, side = turned(best_yaw)
+    best_centre = centre + best_shift[0] * side + best_shift[1] * np.array([0.0, 0.0, 1.0])
+    if best_count <= own:
+        return estimate
+    axis_points = np.stack([best_centre + (a - middle_axial) * best_direction for a in (a0, a1)])
+    return replace(estimate, axis_points_world=axis_points)
+
+
 # ------------------------------------------------------------------------------------------------
 # Agents
 # ------------------------------------------------------------------------------------------------
@@ -620,6 +741,9 @@ class BinAxisGraspAgent(_BinAgentBase):
             (None: never), before the agent gives up.
         last_resort: when neither search finds an instance, take one from an end ring and the middle ring, or a
             part standing under one ring's match (:meth:`_last_resort_estimates`), before the agent gives up.
+        refine_axis: fit each lying instance's axis (yaw, sideways offset, height) to the observed surface
+            (:func:`refine_axis_with_depth`; which end is which stays the descriptors'), and set each standing one
+            upright through the centre of its top (:func:`upright_axis_from_top`).
     """
 
     def __init__(
@@ -632,6 +756,7 @@ class BinAxisGraspAgent(_BinAgentBase):
         temperature: float = DEFAULT_SOFT_TEMPERATURE,
         fallback_match_fraction: float | None = DEFAULT_FALLBACK_MATCH_FRACTION,
         last_resort: bool = True,
+        refine_axis: bool = True,
     ) -> None:
         object_model = _target_model(env)
         if isinstance(model, (str, Path)) and str(model) == "oracle":
@@ -667,6 +792,9 @@ class BinAxisGraspAgent(_BinAgentBase):
         #: When no instance is found at either threshold, look once more for one end ring with the middle ring, and
         #: for a standing part under a single ring's match, before giving up (:meth:`_last_resort_estimates`).
         self.last_resort = bool(last_resort)
+        #: Fit each instance's axis to the observed points (:meth:`_refined`).
+        self.refine_axis = bool(refine_axis)
+        self._profile = radial_profile_m(object_model)
         self._station_agent: Any = None
 
     @property
@@ -683,6 +811,12 @@ class BinAxisGraspAgent(_BinAgentBase):
             found = self._estimates_below(distances, middle, obs, self.fallback_threshold)
         if not found and self.last_resort:
             found = self._last_resort_estimates(distances, middle, obs)
+        if found and self.refine_axis:
+            depth = np.asarray(obs["depth"], dtype=np.float64)
+            intrinsics = CameraIntrinsics.from_array(obs["camera_intrinsics"])
+            cloud = world_point_cloud(depth, intrinsics, np.asarray(obs["camera_pose"], dtype=np.float64))
+            cloud = cloud[cloud[:, 2] > TABLE_TOP_Z_M + REFINE_ABOVE_FLOOR_M]  # the parts, not the floor
+            found = [self._refined(e, cloud) for e in found]
         return found
 
     def _estimates_below(
@@ -709,6 +843,17 @@ class BinAxisGraspAgent(_BinAgentBase):
         cloud = world_point_cloud(depth, intrinsics, T_world_camera)
         standing = standing_from_coincident_rings(points, found, cloud, self.object_model, self.targets, TABLE_TOP_Z_M)
         return [*found, *standing]
+
+    def _refined(self, estimate: InstanceEstimate, cloud_world: np.ndarray) -> InstanceEstimate:
+        """An estimate fitted to the observed points (``cloud_world`` (N, 3), m): a lying one's axis to its surface
+        (:func:`refine_axis_with_depth`); a standing one set upright through the centre of the top seen above its
+        upper axis point (:func:`upright_axis_from_top`; a pair of a ring on the top and one at the side gives a
+        tilted axis whose foot lies a radius or more off), kept as it is where no standing top is seen there."""
+        if not estimate.standing:
+            return refine_axis_with_depth(estimate, cloud_world, self.targets, self._profile, TABLE_TOP_Z_M)
+        upper = estimate.axis_points_world[int(np.argmax(estimate.axis_points_world[:, 2]))]
+        axis_points = upright_axis_from_top(upper, cloud_world, self.object_model, self.targets, TABLE_TOP_Z_M)
+        return estimate if axis_points is None else replace(estimate, axis_points_world=axis_points)
 
     def _ring_candidates(
         self, distances: np.ndarray, obs: Mapping[str, Any], threshold: float
@@ -794,6 +939,48 @@ def middle_ring_points(object_model: ObjectModel, targets: AxisEndTargets, count
     return np.asarray(trimesh.proximity.closest_point(object_model.mesh, circle)[0], dtype=np.float64)
 
 
+def upright_axis_from_top(
+    seed_world: np.ndarray,
+    cloud_world: np.ndarray,
+    object_model: ObjectModel,
+    targets: AxisEndTargets,
+    floor_z_m: float,
+) -> np.ndarray | None:
+    """The (2, 3) axis points (world, m, at the rings' axial positions, +axis up) of a part standing upright on the
+    floor (world z ``floor_z_m``) whose top is seen near ``seed_world`` (3,): the top's height is the highest of the
+    observed points (``cloud_world`` (N, 3)) within the part's radius of the seed (its 95th percentile), its centre
+    is found by moving to the mean of the points at that height (within :data:`STANDING_TOP_M`) within the part's
+    radius until it settles (a seed on the rim, or at the part's foot, lies up to a radius or more off the centre).
+    None when no point lies near the seed or the top is not one part length above the floor (within
+    :data:`STANDING_FLOOR_M`): not a standing part."""
+    length, diameter = lying_footprint_m(object_model)
+    cloud = np.asarray(cloud_world, dtype=np.float64).reshape(-1, 3)
+    centre = np.asarray(seed_world, dtype=np.float64)[:2].copy()
+    # The seed may lie on the rim or, for a cup open upwards, on its floor inside: the top is the highest of what is
+    # seen around it.
+    around = np.linalg.norm(cloud[:, :2] - centre, axis=1) < diameter / 2
+    if not around.any():
+        return None
+    top_z = float(np.percentile(cloud[around, 2], 95))
+    if abs(top_z - length - floor_z_m) > STANDING_FLOOR_M:
+        return None
+    near_top = cloud[np.abs(cloud[:, 2] - top_z) < STANDING_TOP_M, :2]
+    for _ in range(STANDING_CENTRE_ITERATIONS):
+        inside = np.linalg.norm(near_top - centre, axis=1) < diameter / 2
+        if not inside.any():
+            break
+        moved = near_top[inside].mean(axis=0)
+        settled = np.linalg.norm(moved - centre) < STANDING_CENTRE_SETTLED_M
+        centre = moved
+        if settled:
+            break
+    axial = (np.asarray(object_model.mesh.vertices, dtype=np.float64) - object_model.center_of_mass) @ np.asarray(
+        object_model.plus_axis, dtype=np.float64
+    )
+    heights = top_z - (axial.max() - np.asarray(targets.axial_positions_m, dtype=np.float64))
+    return np.array([[centre[0], centre[1], heights[0]], [centre[0], centre[1], heights[1]]])
+
+
 def standing_from_coincident_rings(
     points_world: Sequence[np.ndarray],
     estimates: Sequence[InstanceEstimate],
@@ -813,10 +1000,7 @@ def standing_from_coincident_rings(
     ring may mark the top (a network's match of the lower ring can lie at the part's foot, seen past the top, or
     nowhere; standing toolcaps on the development piles); the height check alone then tells a standing part from
     a lying one."""
-    length, diameter = lying_footprint_m(object_model)
-    axial = (np.asarray(object_model.mesh.vertices, dtype=np.float64) - object_model.center_of_mass) @ np.asarray(
-        object_model.plus_axis, dtype=np.float64
-    )
+    diameter = lying_footprint_m(object_model)[1]
     used = [{e.rings[k] for e in estimates if e.rings is not None} for k in range(2)]
     minus, plus = (np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in points_world)
     if single_ring:
@@ -831,26 +1015,11 @@ def standing_from_coincident_rings(
         for j, b in enumerate(plus):
             if j in used[1] or (single_ring and j != i) or np.linalg.norm(a - b) > COINCIDENT_RADII * diameter / 2:
                 continue
-            top = (a + b) / 2
-            centre = top[:2].copy()
-            # The matches may lie on the rim or, for a cup open upwards, on its floor inside: the top is the highest
-            # of what is seen around them.
-            around = np.linalg.norm(cloud_world[:, :2] - centre, axis=1) < diameter / 2
-            if not around.any():
+            axis_points = upright_axis_from_top((a + b) / 2, cloud_world, object_model, targets, floor_z_m)
+            if axis_points is None:
                 continue
-            top[2] = float(np.percentile(cloud_world[around, 2], 95))
-            near_top = np.abs(cloud_world[:, 2] - top[2]) < STANDING_TOP_M
-            for _ in range(4):
-                inside = near_top & (np.linalg.norm(cloud_world[:, :2] - centre, axis=1) < diameter / 2)
-                if not inside.any():
-                    break
-                centre = cloud_world[inside, :2].mean(axis=0)
-            if abs(float(top[2]) - length - floor_z_m) > STANDING_FLOOR_M:
+            if any(np.linalg.norm(e.axis_points_world[0, :2] - axis_points[0, :2]) < diameter / 2 for e in out):
                 continue
-            if any(np.linalg.norm(e.axis_points_world[0, :2] - centre) < diameter / 2 for e in out):
-                continue
-            heights = float(top[2]) - (axial.max() - np.asarray(targets.axial_positions_m, dtype=np.float64))
-            axis_points = np.array([[centre[0], centre[1], heights[0]], [centre[0], centre[1], heights[1]]])
             out.append(InstanceEstimate(axis_points, match_distance=float(np.inf)))
             used[0].add(i)
             used[1].add(j)

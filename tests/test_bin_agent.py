@@ -399,3 +399,42 @@ def test_a_standing_part_is_found_under_a_single_ring_s_match_as_a_last_resort()
     assert len(standing_from_coincident_rings([np.zeros((0, 3)), rim], [], cloud, toolcap, targets, 0.0, True)) == 1
     lower = cloud - [0, 0, 0.006]
     assert standing_from_coincident_rings([rim - [0, 0, 0.006], foot], [], lower, toolcap, targets, 0.0, True) == []
+
+
+def test_a_lying_instance_s_axis_is_fitted_to_the_observed_surface():
+    import time
+
+    from don_gym.agents.bin_agent import radial_profile_m, refine_axis_with_depth
+
+    toolcap = load_object("toolcap")
+    targets = axis_end_targets(toolcap)
+    profile = radial_profile_m(toolcap)
+    a0, a1 = (float(v) for v in targets.axial_positions_m)
+    # The upper half of a toolcap's outer surface, lying along +x with its axis 14 mm above the floor at (0.5, 0),
+    # sampled as a camera above would see it, and the floor around it.
+    axial, angle = np.meshgrid(np.linspace(-0.02, 0.02, 60), np.linspace(0.05, np.pi - 0.05, 40))
+    position = axial.ravel() + (a0 + a1) / 2
+    r = np.interp(position, *profile)
+    surface = np.stack(
+        [0.5 + axial.ravel(), r * np.cos(angle.ravel()), 0.014 + r * np.sin(angle.ravel())], axis=1
+    )  # fmt: skip
+    floor = np.stack(np.meshgrid(np.linspace(0.44, 0.56, 50), np.linspace(-0.06, 0.06, 50)), -1).reshape(-1, 2)
+    cloud = np.concatenate([surface, np.c_[floor, np.zeros(len(floor))]])
+    true_axis = np.array([[0.5 + a0 - (a0 + a1) / 2, 0, 0.014], [0.5 + a1 - (a0 + a1) / 2, 0, 0.014]])
+    # The descriptors' estimate: 20 degrees off in yaw and 3 mm to the side.
+    yaw = np.deg2rad(20.0)
+    turn = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    centre = true_axis.mean(axis=0)
+    off = (true_axis - centre) @ turn.T + centre + [0, 0.003, 0]
+    start = time.perf_counter()
+    refined = refine_axis_with_depth(InstanceEstimate(off, occlusion=0.1), cloud, targets, profile, 0.0)
+    assert time.perf_counter() - start < 1.0
+    assert refined.occlusion == 0.1  # only the axis changes
+    error_deg = np.degrees(np.arccos(abs(refined.direction @ [1.0, 0, 0])))
+    assert error_deg < 3.0 and refined.direction[0] > 0  # which end is which stays the estimate's
+    np.testing.assert_allclose(refined.axis_points_world.mean(axis=0), centre, atol=0.0015)
+    # A standing estimate, or one with hardly a point near it, is kept as it is.
+    standing = InstanceEstimate(np.array([[0.5, 0, 0.01], [0.5, 0, 0.03]]))
+    assert refine_axis_with_depth(standing, cloud, targets, profile, 0.0) is standing
+    lonely = InstanceEstimate(off + [0.3, 0, 0])
+    assert refine_axis_with_depth(lonely, cloud, targets, profile, 0.0) is lonely
