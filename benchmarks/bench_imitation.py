@@ -12,6 +12,8 @@
 
     python benchmarks/bench_imitation.py                  # both parts, records "imitation" and "imitation-cost"
     python benchmarks/bench_imitation.py --parts cost     # the cost only (minutes), records "imitation-cost"
+    python benchmarks/bench_imitation.py --parts comparison --inputs state true don:toolcap/supervised-edge rgbd
+                                                          # some inputs only; the section names those left out
     python benchmarks/bench_imitation.py --quick          # the CLI's --quick comparison, a short cost; no record
 """
 
@@ -90,6 +92,7 @@ def comparison(config: ImitationConfig, work: Path, quick: bool) -> str:
         plot_success_against_demonstrations(
             result.rates(), figure, title=f"behaviour cloning, {config.part} {config.goal}"
         )
+    left_out = [name for name in all_inputs(config.part) if name not in config.inputs]
     lines = [
         f"Part `{config.part}`, {config.goal}; demonstrations of the Markov expert with DART noise "
         f"{config.action_noise} on its motion, seeds from {config.seed}; behaviour cloning {config.train_steps} "
@@ -98,9 +101,11 @@ def comparison(config: ImitationConfig, work: Path, quick: bool) -> str:
         f"95% Wilson intervals. Generalisation columns at N = {config.generalisation_n}: the same policies with "
         f'`background="random"`, and the recipe on the shaft (its demonstrations, its networks). ms / step: the '
         f"wall time of an evaluation step with the input.",
+        *(["", f"Inputs not run this time (`--inputs`): {', '.join(f'`{n}`' for n in left_out)}."]
+          if left_out and not quick else []),
         "",
         result.table(),
-    ]
+    ]  # fmt: skip
     state, don = result.wins.get("state", {}), result.wins.get(f"don:{config.part}/supervised-edge", {})
     if 50 in state and 50 in don:
         gap = 100.0 * (state[50] - don[50]) / config.episodes
@@ -119,7 +124,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="the CLI's --quick comparison, a short cost; no record")
     parser.add_argument("--split", choices=("test", "dev"), default="test", help="evaluation episodes")
     parser.add_argument("--work", default=None, help="keep the demonstrations here (default: a temporary folder)")
+    parser.add_argument(
+        "--inputs", nargs="+", default=None, metavar="INPUT",
+        help="run the comparison for these of its inputs only (the recorded section names them); default: all of "
+        "state, true, simulated:<part>/supervised-edge, don:<part>/<network> for each shipped network, rgbd, "
+        "descriptors:<part>/supervised-edge",
+    )  # fmt: skip
     args = parser.parse_args(argv)
+    every = all_inputs(args.part)
+    if args.inputs is not None:
+        unknown = [name for name in args.inputs if name not in every]
+        if unknown or args.quick:
+            parser.exit(2, f"bench_imitation.py: error: --inputs {' '.join(args.inputs)}: "
+                           + (f"expected some of {every}\n" if unknown else "not with --quick\n"))  # fmt: skip
+    inputs = every if args.inputs is None else [name for name in every if name in args.inputs]
     torch.set_num_threads(1)
     if not args.quick:
         require_blocks(README, [README_BLOCKS[part] for part in args.parts])
@@ -128,8 +146,8 @@ def main(argv: list[str] | None = None) -> int:
         work = Path(args.work or temp)
         work.mkdir(parents=True, exist_ok=True)
         if "cost" in args.parts:
-            inputs = [k.format(part=args.part) for k in QUICK["inputs"]] if args.quick else all_inputs(args.part)
-            body = cost(args.part, inputs, 1, work)
+            timed = [k.format(part=args.part) for k in QUICK["inputs"]] if args.quick else inputs
+            body = cost(args.part, timed, 1, work)
             print(body)
             if not args.quick:
                 record_section("imitation-cost", "Imitation inputs: the cost of an env step (bench_imitation)", body)
@@ -139,9 +157,7 @@ def main(argv: list[str] | None = None) -> int:
                 preset = {**QUICK, "inputs": tuple(k.format(part=args.part) for k in QUICK["inputs"])}
                 config = ImitationConfig(part=args.part, eval_seed=eval_seed, **preset)
             else:
-                config = ImitationConfig(
-                    part=args.part, inputs=tuple(all_inputs(args.part)), generalisation_n=50, eval_seed=eval_seed
-                )
+                config = ImitationConfig(part=args.part, inputs=tuple(inputs), generalisation_n=50, eval_seed=eval_seed)
             body = comparison(config, work, args.quick)
             print(body)
             if not args.quick:
