@@ -307,20 +307,25 @@ def test_a_network_of_several_parts_benchmarks_for_its_target(tmp_path):
     assert any(line.startswith("oracle: places") for line in lines)
 
 
-def test_a_part_standing_upright_is_found_from_its_top():
-    from don_gym.agents.bin_agent import standing_from_coincident_rings
+def _standing_toolcap_top():
+    """The toolcap, its targets, and the observed points of it standing on the floor (z = 0) with its axis at
+    (0.10, 0.20) (a disc of points at its length's height, the floor around it), and a point on its top's rim."""
     from don_gym.sim.bin_task import lying_footprint_m
 
     toolcap = load_object("toolcap")
-    targets = axis_end_targets(toolcap)
     length, diameter = lying_footprint_m(toolcap)
-    # The observed top of a toolcap standing on the floor (z = 0) with its axis at (0.10, 0.20): a disc of points,
-    # the floor around it; both rings' candidates coincide on its rim.
     r, a = np.meshgrid(np.linspace(0, diameter / 2, 8), np.linspace(0, 2 * np.pi, 24))
     disc = np.stack([0.10 + r.ravel() * np.cos(a.ravel()), 0.20 + r.ravel() * np.sin(a.ravel())], axis=1)
     floor = np.stack(np.meshgrid(np.linspace(0.0, 0.2, 40), np.linspace(0.1, 0.3, 40)), axis=-1).reshape(-1, 2)
     cloud = np.concatenate([np.c_[disc, np.full(len(disc), length)], np.c_[floor, np.zeros(len(floor))]])
-    rim = np.array([[0.10 + 0.8 * diameter / 2, 0.20, length]])
+    return toolcap, axis_end_targets(toolcap), cloud, np.array([[0.10 + 0.8 * diameter / 2, 0.20, length]])
+
+
+def test_a_part_standing_upright_is_found_from_its_top():
+    from don_gym.agents.bin_agent import standing_from_coincident_rings
+
+    # Both rings' candidates coincide on the top's rim.
+    toolcap, targets, cloud, rim = _standing_toolcap_top()
     found = standing_from_coincident_rings([rim, rim + [0, 0.002, 0]], [], cloud, toolcap, targets, 0.0)
     assert len(found) == 1 and found[0].standing
     np.testing.assert_allclose(found[0].axis_points_world[:, :2], [[0.10, 0.20]] * 2, atol=0.003)
@@ -381,15 +386,9 @@ def test_a_standing_part_is_found_under_a_single_ring_s_match_as_a_last_resort()
     from don_gym.agents.bin_agent import standing_from_coincident_rings
     from don_gym.sim.bin_task import lying_footprint_m
 
-    toolcap = load_object("toolcap")
-    targets = axis_end_targets(toolcap)
-    length, diameter = lying_footprint_m(toolcap)
-    r, a = np.meshgrid(np.linspace(0, diameter / 2, 8), np.linspace(0, 2 * np.pi, 24))
-    disc = np.stack([0.10 + r.ravel() * np.cos(a.ravel()), 0.20 + r.ravel() * np.sin(a.ravel())], axis=1)
-    floor = np.stack(np.meshgrid(np.linspace(0.0, 0.2, 40), np.linspace(0.1, 0.3, 40)), axis=-1).reshape(-1, 2)
-    cloud = np.concatenate([np.c_[disc, np.full(len(disc), length)], np.c_[floor, np.zeros(len(floor))]])
+    toolcap, targets, cloud, rim = _standing_toolcap_top()
+    diameter = lying_footprint_m(toolcap)[1]
     # The minus ring matched on the rim; the plus ring's match lies at the part's foot, on the floor beside it.
-    rim = np.array([[0.10 + 0.8 * diameter / 2, 0.20, length]])
     foot = np.array([[0.10 + diameter / 2 + 0.004, 0.20 - 0.02, 0.005]])
     assert standing_from_coincident_rings([rim, foot], [], cloud, toolcap, targets, 0.0) == []
     found = standing_from_coincident_rings([rim, foot], [], cloud, toolcap, targets, 0.0, single_ring=True)

@@ -1,0 +1,35 @@
+"""benchmarks/bench_imitation.py's choice of inputs: a subset keeps the comparison's order, and bad input is one
+line (the comparison itself runs in tests/test_imitation.py)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+import bench_imitation  # noqa: E402
+
+
+def test_every_input_of_the_comparison_for_a_part():
+    inputs = bench_imitation.all_inputs("shaft")
+    assert inputs[:3] == ["state", "true", "simulated:shaft/supervised-edge"]
+    assert {f"don:shaft/{network}" for network in bench_imitation.NETWORKS} <= set(inputs)
+    assert inputs[-2:] == ["rgbd", "descriptors:shaft/supervised-edge"]
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--inputs", "state", "don:toolcap/nonsense"], "expected some of"),
+        (["--inputs", "state", "--quick"], "not with --quick"),
+    ],
+)
+def test_bad_inputs_are_refused_in_one_line_before_anything_runs(capsys, args, message):
+    with pytest.raises(SystemExit) as exit_info:
+        bench_imitation.main(args)
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and message in err and "Traceback" not in err
