@@ -466,35 +466,27 @@ def pair_with_middle_ring(
     of one end ring can fall short of it, towards the middle (lying toolcaps on the development piles: 4 to 12 mm
     apart where 24 mm was due); the other end and the middle then still give the axis. Pairs of the minus end are
     tried first; each middle candidate serves one instance."""
-    middle_position = float(np.mean(targets.axial_positions_m))
-    middle_radius = float(np.max(targets.radii_m))
+    a_minus, a_plus = (float(v) for v in targets.axial_positions_m)
+    r_minus, r_plus = (float(v) for v in targets.radii_m)
+    a_middle, r_middle = (a_minus + a_plus) / 2, float(np.max(targets.radii_m))
     found: list[InstanceEstimate] = []
     used_middle: set[int] = set()
-    for k in range(2):
-        positions = [float(targets.axial_positions_m[k]), middle_position]
-        radii = [float(targets.radii_m[k]), middle_radius]
-        order = [0, 1] if k == 0 else [1, 0]  # minus-end first, as pair_ring_candidates expects
-        half = replace(
-            targets,
-            axial_positions_m=np.asarray([positions[i] for i in order]),
-            radii_m=np.asarray([radii[i] for i in order]),
-        )
-        candidates = [rings[k], middle] if k == 0 else [middle, rings[k]]
+    # (axial positions, radii, candidates) minus-end first as pair_ring_candidates takes them, and which is the end.
+    for positions, radii, candidates, end in (
+        ((a_minus, a_middle), (r_minus, r_middle), (rings[0], middle), 0),
+        ((a_middle, a_plus), (r_middle, r_plus), (middle, rings[1]), 1),
+    ):
+        half = replace(targets, axial_positions_m=np.asarray(positions), radii_m=np.asarray(radii))
         for estimate in pair_ring_candidates(
             [c[0] for c in candidates], [c[1] for c in candidates], [c[2] for c in candidates],
             depth_m, T_world_camera, half, floor_z_m=floor_z_m,
         ):  # fmt: skip
-            middle_index = None if estimate.rings is None else estimate.rings[1 if k == 0 else 0]
+            middle_index = estimate.rings[1 - end]
             if middle_index in used_middle:
                 continue
             used_middle.add(middle_index)
-            end_point, middle_point = (
-                (estimate.axis_points_world[0], estimate.axis_points_world[1])
-                if k == 0
-                else (estimate.axis_points_world[1], estimate.axis_points_world[0])
-            )
-            far_point = 2.0 * middle_point - end_point
-            axis_points = np.stack([end_point, far_point] if k == 0 else [far_point, end_point])
+            axis_points = estimate.axis_points_world.copy()
+            axis_points[1 - end] = 2.0 * axis_points[1 - end] - axis_points[end]  # the far end, beyond the middle
             found.append(replace(estimate, axis_points_world=axis_points, rings=None))
     return found
 
@@ -600,6 +592,31 @@ def refine_axis_with_depth(
         return estimate
     axis_points = np.stack([best_centre + (a - middle_axial) * best_direction for a in (a0, a1)])
     return replace(estimate, axis_points_world=axis_points)
+
+
+@dataclass(frozen=True)
+class _DepthView:
+    """What the descriptor agent's searches need of one observation's depth, worked out once: the depth image
+    (H, W) float32 (m), the intrinsics, ``T_world_camera`` (4, 4), the point cloud (N, 3) of every pixel with depth
+    (world, m), and the candidate suppression window (pixels: a ring's diameter at the median depth)."""
+
+    depth_m: np.ndarray
+    intrinsics: CameraIntrinsics
+    T_world_camera: np.ndarray
+    cloud_world: np.ndarray
+    window_px: float
+
+    @classmethod
+    def of(cls, obs: Mapping[str, Any], window_m: float) -> _DepthView:
+        depth = np.asarray(obs["depth"], dtype=np.float32)
+        intrinsics = CameraIntrinsics.from_array(obs["camera_intrinsics"])
+        T_world_camera = np.asarray(obs["camera_pose"], dtype=np.float64)
+        valid = depth[depth > 0]
+        typical_z = float(np.median(valid)) if len(valid) else 0.45
+        # One candidate per ring: minima closer than a ring's diameter are one ring's arc.
+        window_px = intrinsics.fx * window_m / typical_z
+        cloud = world_point_cloud(depth, intrinsics, T_world_camera)
+        return cls(depth, intrinsics, T_world_camera, cloud, window_px)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -806,42 +823,39 @@ class BinAxisGraspAgent(_BinAgentBase):
         # The distances do not depend on the threshold: computed once for both searches.
         distances = descriptor_distances(descriptor_image, self.reference_descriptors)
         middle = descriptor_distances(descriptor_image, self.middle_descriptor[None])[0]
-        found = self._estimates_below(distances, middle, obs, self.match_threshold)
+        view = _DepthView.of(obs, self.targets.window_m)
+        found = self._estimates_below(distances, middle, view, self.match_threshold)
         if not found and self.fallback_threshold is not None:
-            found = self._estimates_below(distances, middle, obs, self.fallback_threshold)
+            found = self._estimates_below(distances, middle, view, self.fallback_threshold)
         if not found and self.last_resort:
-            found = self._last_resort_estimates(distances, middle, obs)
+            found = self._last_resort_estimates(distances, middle, view)
         if found and self.refine_axis:
-            depth = np.asarray(obs["depth"], dtype=np.float64)
-            intrinsics = CameraIntrinsics.from_array(obs["camera_intrinsics"])
-            cloud = world_point_cloud(depth, intrinsics, np.asarray(obs["camera_pose"], dtype=np.float64))
-            cloud = cloud[cloud[:, 2] > TABLE_TOP_Z_M + REFINE_ABOVE_FLOOR_M]  # the parts, not the floor
-            found = [self._refined(e, cloud) for e in found]
+            parts = view.cloud_world[view.cloud_world[:, 2] > TABLE_TOP_Z_M + REFINE_ABOVE_FLOOR_M]  # not the floor
+            found = [self._refined(e, parts) for e in found]
         return found
 
     def _estimates_below(
-        self, distances: np.ndarray, middle: np.ndarray, obs: Mapping[str, Any], threshold: float
+        self, distances: np.ndarray, middle: np.ndarray, view: _DepthView, threshold: float
     ) -> list[InstanceEstimate]:
         """The instances whose ring candidates match the reference descriptors closer than ``threshold``, from the
         descriptor distances (2, H, W) to the two rings' references and (H, W) to the middle ring's."""
-        depth = np.asarray(obs["depth"], dtype=np.float32)
-        intrinsics = CameraIntrinsics.from_array(obs["camera_intrinsics"])
-        T_world_camera = np.asarray(obs["camera_pose"], dtype=np.float64)
         points, pixels, match_distances = zip(
-            *(self._ring_candidates(distances[k], obs, threshold) for k in range(2)), strict=True
+            *(self._ring_candidates(distances[k], view, threshold) for k in range(2)), strict=True
         )
         found = pair_ring_candidates(
-            points, pixels, match_distances, depth, T_world_camera, self.targets, middle, threshold,
+            points, pixels, match_distances, view.depth_m, view.T_world_camera, self.targets, middle, threshold,
             floor_z_m=TABLE_TOP_Z_M,
         )  # fmt: skip
         if not found:
             # A learned network misses the middle ring's descriptor more often than the rings': rather a grasp
             # than none, the pairs without that check (the spacing, the gap and the floor still hold).
             found = pair_ring_candidates(
-                points, pixels, match_distances, depth, T_world_camera, self.targets, floor_z_m=TABLE_TOP_Z_M
-            )
-        cloud = world_point_cloud(depth, intrinsics, T_world_camera)
-        standing = standing_from_coincident_rings(points, found, cloud, self.object_model, self.targets, TABLE_TOP_Z_M)
+                points, pixels, match_distances, view.depth_m, view.T_world_camera, self.targets,
+                floor_z_m=TABLE_TOP_Z_M,
+            )  # fmt: skip
+        standing = standing_from_coincident_rings(
+            points, found, view.cloud_world, self.object_model, self.targets, TABLE_TOP_Z_M
+        )
         return [*found, *standing]
 
     def _refined(self, estimate: InstanceEstimate, cloud_world: np.ndarray) -> InstanceEstimate:
@@ -856,29 +870,23 @@ class BinAxisGraspAgent(_BinAgentBase):
         return estimate if axis_points is None else replace(estimate, axis_points_world=axis_points)
 
     def _ring_candidates(
-        self, distances: np.ndarray, obs: Mapping[str, Any], threshold: float
+        self, distances: np.ndarray, view: _DepthView, threshold: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One reference's candidate matches below ``threshold`` in its distance image (H, W): their (M, 3) world
         points, (M, 2) pixels and (M,) distances, those without depth left out."""
-        depth = np.asarray(obs["depth"], dtype=np.float32)
-        intrinsics = CameraIntrinsics.from_array(obs["camera_intrinsics"])
-        valid = depth[depth > 0]
-        typical_z = float(np.median(valid)) if len(valid) else 0.45
-        # One candidate per ring: minima closer than a ring's diameter are one ring's arc.
-        window_px = intrinsics.fx * self.targets.window_m / typical_z
         uv, distance = local_matches(
-            distances, threshold, window_px, self.temperature * self.source.descriptor_scale, MAX_CANDIDATES_PER_RING
-        )
+            distances, threshold, view.window_px, self.temperature * self.source.descriptor_scale,
+            MAX_CANDIDATES_PER_RING,
+        )  # fmt: skip
         if not len(uv):
             return np.zeros((0, 3)), uv, distance
-        points_camera, ok = robust_point_from_depth(depth, intrinsics, uv)
+        points_camera, ok = robust_point_from_depth(view.depth_m, view.intrinsics, uv)
         ok = np.asarray(ok, dtype=bool)
-        T_world_camera = np.asarray(obs["camera_pose"], dtype=np.float64)
-        points = transform_points(T_world_camera, points_camera[ok]) if ok.any() else np.zeros((0, 3))
+        points = transform_points(view.T_world_camera, points_camera[ok]) if ok.any() else np.zeros((0, 3))
         return points, uv[ok], distance[ok]
 
     def _last_resort_estimates(
-        self, distances: np.ndarray, middle: np.ndarray, obs: Mapping[str, Any]
+        self, distances: np.ndarray, middle: np.ndarray, view: _DepthView
     ) -> list[InstanceEstimate]:
         """When neither search found an instance (:attr:`last_resort`): instances from one end ring and the middle
         ring (:func:`pair_with_middle_ring`), then parts standing under a single ring's match
@@ -886,18 +894,17 @@ class BinAxisGraspAgent(_BinAgentBase):
         threshold without one). ``distances`` (2, H, W) to the two rings' references, ``middle`` (H, W) to the
         middle ring's."""
         threshold = self.match_threshold if self.fallback_threshold is None else self.fallback_threshold
-        rings = [self._ring_candidates(distances[k], obs, threshold) for k in range(2)]
-        middle_ring = self._ring_candidates(middle, obs, threshold)
-        depth = np.asarray(obs["depth"], dtype=np.float32)
-        T_world_camera = np.asarray(obs["camera_pose"], dtype=np.float64)
-        found = pair_with_middle_ring(rings, middle_ring, depth, T_world_camera, self.targets, TABLE_TOP_Z_M)
+        rings = [self._ring_candidates(distances[k], view, threshold) for k in range(2)]
+        middle_ring = self._ring_candidates(middle, view, threshold)
+        found = pair_with_middle_ring(
+            rings, middle_ring, view.depth_m, view.T_world_camera, self.targets, TABLE_TOP_Z_M
+        )
         if found:
             return found
-        cloud = world_point_cloud(depth, CameraIntrinsics.from_array(obs["camera_intrinsics"]), T_world_camera)
-        points = [r[0] for r in rings]
         return standing_from_coincident_rings(
-            points, [], cloud, self.object_model, self.targets, TABLE_TOP_Z_M, single_ring=True
-        )
+            [r[0] for r in rings], [], view.cloud_world, self.object_model, self.targets, TABLE_TOP_Z_M,
+            single_ring=True,
+        )  # fmt: skip
 
     def station_estimates(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None) -> list[InstanceEstimate]:
         """The part set down alone at the regrasp station, as the single-part axis agent
@@ -1003,27 +1010,35 @@ def standing_from_coincident_rings(
     diameter = lying_footprint_m(object_model)[1]
     used = [{e.rings[k] for e in estimates if e.rings is not None} for k in range(2)]
     minus, plus = (np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in points_world)
-    if single_ring:
-        # Every candidate alone, each as both ends of a pair: the minus ring's first, then the plus ring's.
-        seeds = np.concatenate([minus[[i for i in range(len(minus)) if i not in used[0]]],
-                                plus[[j for j in range(len(plus)) if j not in used[1]]]])  # fmt: skip
-        minus, plus, used = seeds, seeds, [set(), set()]
     out: list[InstanceEstimate] = []
+
+    def add_top(seed: np.ndarray) -> bool:
+        """Add the standing part whose top is seen at ``seed`` (3,) unless there is none or it is one already
+        found."""
+        axis_points = upright_axis_from_top(seed, cloud_world, object_model, targets, floor_z_m)
+        if axis_points is None or any(
+            np.linalg.norm(e.axis_points_world[0, :2] - axis_points[0, :2]) < diameter / 2 for e in out
+        ):
+            return False
+        out.append(InstanceEstimate(axis_points, match_distance=float(np.inf)))
+        return True
+
+    if single_ring:
+        # Every candidate left unpaired marks a top alone: the minus ring's first, then the plus ring's.
+        for k, candidates in enumerate((minus, plus)):
+            for i, seed in enumerate(candidates):
+                if i not in used[k]:
+                    add_top(seed)
+        return out
     for i, a in enumerate(minus):
         if i in used[0]:
             continue
         for j, b in enumerate(plus):
-            if j in used[1] or (single_ring and j != i) or np.linalg.norm(a - b) > COINCIDENT_RADII * diameter / 2:
+            if j in used[1] or np.linalg.norm(a - b) > COINCIDENT_RADII * diameter / 2:
                 continue
-            axis_points = upright_axis_from_top((a + b) / 2, cloud_world, object_model, targets, floor_z_m)
-            if axis_points is None:
-                continue
-            if any(np.linalg.norm(e.axis_points_world[0, :2] - axis_points[0, :2]) < diameter / 2 for e in out):
-                continue
-            out.append(InstanceEstimate(axis_points, match_distance=float(np.inf)))
-            used[0].add(i)
-            used[1].add(j)
-            break
+            if add_top((a + b) / 2):
+                used[1].add(j)
+                break
     return out
 
 
