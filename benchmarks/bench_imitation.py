@@ -126,7 +126,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work", default=None, help="keep the demonstrations here (default: a temporary folder)")
     parser.add_argument(
         "--inputs", nargs="+", default=None, metavar="INPUT",
-        help="run the comparison for these of its inputs only (the recorded section names them); default: all of "
+        help="run the comparison for these of its inputs only (the recorded section names those left out; "
+        "the cost part always times every input); default: all of "
         "state, true, simulated:<part>/supervised-edge, don:<part>/<network> for each shipped network, rgbd, "
         "descriptors:<part>/supervised-edge",
     )  # fmt: skip
@@ -146,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
         work = Path(args.work or temp)
         work.mkdir(parents=True, exist_ok=True)
         if "cost" in args.parts:
-            timed = [k.format(part=args.part) for k in QUICK["inputs"]] if args.quick else inputs
+            timed = [k.format(part=args.part) for k in QUICK["inputs"]] if args.quick else every
             body = cost(args.part, timed, 1, work)
             print(body)
             if not args.quick:
