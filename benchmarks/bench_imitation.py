@@ -15,11 +15,17 @@
     python benchmarks/bench_imitation.py --parts comparison --inputs state true don:toolcap/supervised-edge rgbd
                                                           # some inputs only; the section names those left out
     python benchmarks/bench_imitation.py --quick          # the CLI's --quick comparison, a short cost; no record
+    python benchmarks/bench_imitation.py --parts comparison --demos-file WORK/demos_toolcap_lift.hdf5 \
+        --other-demos-file WORK/demos_shaft_lift.hdf5     # the demonstrations an earlier --work WORK recorded
+
+The comparison clones and evaluates ``--jobs`` policies at once (default: one per core), each in its own process
+with one torch thread; each policy is seeded and its episodes fixed, so the figures do not depend on it.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tempfile
 from pathlib import Path
@@ -85,8 +91,10 @@ def cost(part: str, inputs: list[str], episodes: int, work: Path) -> str:
     )
 
 
-def comparison(config: ImitationConfig, work: Path, quick: bool) -> str:
-    result = run_imitation(config, work, progress=True)
+def comparison(
+    config: ImitationConfig, work: Path, quick: bool, jobs: int, demos: str | None, other_demos: str | None
+) -> str:
+    result = run_imitation(config, work, demos=demos, progress=True, jobs=jobs, other_demos=other_demos)
     figure = FIGURES / "imitation.png"
     if not quick:
         plot_success_against_demonstrations(
@@ -100,7 +108,8 @@ def comparison(config: ImitationConfig, work: Path, quick: bool) -> str:
         f"spatial-softmax encoder); success on {config.episodes} episodes `reset(seed={config.eval_seed} + i)` with "
         f"95% Wilson intervals. Generalisation columns at N = {config.generalisation_n}: the same policies with "
         f'`background="random"`, and the recipe on the shaft (its demonstrations, its networks). ms / step: the '
-        f"wall time of an evaluation step with the input.",
+        f"wall time of an evaluation step with the input, {jobs} policies cloned and evaluated at once (`--jobs`, "
+        f"one torch thread each; the cost table below times each input alone).",
         *(["", f"Inputs not run this time (`--inputs`): {', '.join(f'`{n}`' for n in left_out)}."]
           if left_out and not quick else []),
         "",
@@ -131,7 +140,24 @@ def main(argv: list[str] | None = None) -> int:
         "state, true, simulated:<part>/supervised-edge, don:<part>/<network> for each shipped network, rgbd, "
         "descriptors:<part>/supervised-edge",
     )  # fmt: skip
+    parser.add_argument(
+        "--demos-file", default=None, metavar="HDF5",
+        help="the part's demonstrations, recorded before (e.g. WORK/demos_toolcap_lift.hdf5 of an earlier --work), "
+        "instead of recording them; checked for the part, the task, 200 demonstrations and every input",
+    )  # fmt: skip
+    parser.add_argument(
+        "--other-demos-file", default=None, metavar="HDF5",
+        help="likewise the other part's, for the generalisation column (e.g. WORK/demos_shaft_lift.hdf5)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--jobs", type=int, default=None, metavar="N",
+        help="clone and evaluate N policies at once, one process each (default: one per core); the figures do not "
+        "depend on it",
+    )  # fmt: skip
     args = parser.parse_args(argv)
+    if args.jobs is not None and args.jobs < 1:
+        parser.exit(2, f"bench_imitation.py: error: --jobs {args.jobs}: expected a positive number of processes\n")
+    jobs = args.jobs or len(os.sched_getaffinity(0))
     every = all_inputs(args.part)
     if args.inputs is not None:
         unknown = [name for name in args.inputs if name not in every]
@@ -159,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
                 config = ImitationConfig(part=args.part, eval_seed=eval_seed, **preset)
             else:
                 config = ImitationConfig(part=args.part, inputs=tuple(inputs), generalisation_n=50, eval_seed=eval_seed)
-            body = comparison(config, work, args.quick)
+            body = comparison(config, work, args.quick, jobs, args.demos_file, args.other_demos_file)
             print(body)
             if not args.quick:
                 record_section("imitation", "Behaviour cloning at equal demonstrations (bench_imitation)", body)

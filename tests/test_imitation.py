@@ -114,6 +114,26 @@ def test_generalisation_columns_and_the_cost_of_a_step(lift_demos, tmp_path):
     assert len(result.table().splitlines()) == 2 + len(config.inputs)
 
 
+def test_policies_cloned_side_by_side_give_the_figures_of_one_process(lift_demos, tmp_path):
+    torch.set_num_threads(1)  # as in each worker: the same training arithmetic
+    config = ImitationConfig(inputs=("state", "true"), demonstrations=(2, 3), episodes=2, train_steps=300,
+                             generalisation_n=3)  # fmt: skip
+    alone = run_imitation(config, tmp_path / "one", demos=lift_demos, progress=False, jobs=1)
+    shaft_demos = tmp_path / "one" / "demos_shaft_lift.hdf5"  # the other part's, recorded by the first run
+    side_by_side = run_imitation(
+        config, tmp_path / "two", demos=lift_demos, progress=False, jobs=2, other_demos=shaft_demos
+    )
+    assert not (tmp_path / "two" / "demos_shaft_lift.hdf5").exists()  # taken, not recorded again
+    assert side_by_side.wins == alone.wins and side_by_side.generalisation == alone.generalisation
+    with pytest.raises(DonGymError, match="are of the part 'toolcap'; expected 'shaft'") as error:
+        run_imitation(config, tmp_path, demos=lift_demos, progress=False, other_demos=lift_demos)
+    assert "\n" not in str(error.value)
+    assert set(side_by_side.seconds_per_step) == set(config.inputs)
+    with pytest.raises(DonGymError, match="jobs=0: expected a positive number") as error:
+        run_imitation(config, tmp_path, demos=lift_demos, progress=False, jobs=0)
+    assert "\n" not in str(error.value)
+
+
 def test_bad_generalisation_and_input_names_are_one_line_errors(lift_demos, tmp_path):
     cases = [
         (ImitationConfig(inputs=("true",), demonstrations=(2,), generalisation_n=3), r"generalisation_n=3: expected"),

@@ -52,6 +52,10 @@ def register_imitation(kinds: argparse._SubParsersAction) -> None:
     parser.add_argument("--inputs", nargs="+", default=None, metavar="INPUT", help="inputs (default: all but don:)")
     parser.add_argument("--demos", nargs="+", type=positive_int, default=None, metavar="N", help="numbers of demos")
     parser.add_argument("--demos-file", default=None, help="recorded demonstrations to use instead of recording")
+    parser.add_argument(
+        "--other-demos-file", default=None,
+        help="the other part's recorded demonstrations for the generalisation column, instead of recording them",
+    )  # fmt: skip
     parser.add_argument("--episodes", type=positive_int, default=None, help="evaluation episodes (default 100)")
     parser.add_argument("--train-steps", type=positive_int, default=None, help="gradient steps (default 4000)")
     parser.add_argument(
@@ -70,11 +74,17 @@ def register_imitation(kinds: argparse._SubParsersAction) -> None:
     )  # fmt: skip
     parser.add_argument("--seed", type=int, default=0, help="first demonstration seed and training seed")
     parser.add_argument("--out", metavar="DIR", default=None, help="write demos, Markdown and the figure here")
+    parser.add_argument(
+        "--jobs", type=positive_int, default=None, metavar="N",
+        help="clone and evaluate N policies at once, one process each with one torch thread (default: one per "
+        "core); the figures do not depend on it",
+    )  # fmt: skip
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(run=run_imitation_command)
 
 
 def run_imitation_command(args: argparse.Namespace) -> int:
+    import os
     import tempfile
     from pathlib import Path
 
@@ -110,7 +120,11 @@ def run_imitation_command(args: argparse.Namespace) -> int:
     )
     with tempfile.TemporaryDirectory() as temp:
         work = Path(args.out) if args.out is not None else Path(temp)
-        result = run_imitation(config, work, demos=args.demos_file, progress=not args.no_progress)
+        jobs = args.jobs or len(os.sched_getaffinity(0))
+        result = run_imitation(
+            config, work, demos=args.demos_file, progress=not args.no_progress, jobs=jobs,
+            other_demos=args.other_demos_file,
+        )  # fmt: skip
         table = result.table()
         episodes = "development" if args.split == "dev" else "held-out"
         print(f"{config.part} {config.goal}: success on {config.episodes} {episodes} episodes (95% Wilson interval)")

@@ -24,6 +24,7 @@ from tqdm.auto import tqdm
 
 from don_gym.errors import DonGymError
 from don_gym.evaluation.demonstrations import RecordSettings, kind_env, read_demonstrations, record_demonstrations
+from don_gym.evaluation.episodes import run_tasks
 from don_gym.evaluation.imitation_policy import (
     HISTORY,
     HistoryPolicy,
@@ -234,65 +235,147 @@ def _demonstrations(
     return path
 
 
-def _other_part(config: ImitationConfig, work: Path, progress: bool) -> dict[str, int | None]:
-    """The "other part" column: the recipe at N = generalisation_n on :data:`OTHER_PART`'s part."""
+def _check_demonstrations(path: str | Path, count: int, part: str, goal: str, inputs: list[str]) -> None:
+    """One-line DonGymError unless ``path`` holds ``count`` demonstrations of ``goal`` on ``part`` with ``inputs``."""
+    kinds = read_demonstrations(path, count=count, part=part, goal=goal, keys=["ee_pose"]).kinds
+    missing = [name for name in inputs if name not in kinds]
+    if missing:
+        raise DonGymError(f"demonstrations {str(path)!r} lack the inputs {missing}; it has {kinds}")
+
+
+def _other_inputs(config: ImitationConfig) -> dict[str, str | None]:
+    """Each input's counterpart on :data:`OTHER_PART`'s part (None: it has none, or the part has no other)."""
     other = OTHER_PART.get(config.part)
-    mapped = {name: input_for_part(name, config.part, other) if other else None for name in config.inputs}
-    usable = [kind for kind in mapped.values() if kind is not None]
-    if not usable:
-        return dict.fromkeys(config.inputs)
-    n = int(config.generalisation_n)
-    path = _demonstrations(config, other, usable, n, work / f"demos_{other}_{config.goal}.hdf5", progress)
-    demos = read_demonstrations(path, count=n, part=other, goal=config.goal)
-    wins: dict[str, int | None] = {}
-    for name, kind in mapped.items():
-        if kind is None:
-            wins[name] = None
-            continue
-        policy = train_policy(kind, demos, config.train_steps, seed=config.seed, progress=progress)
-        wins[name] = evaluate_policy(
-            policy, kind, other, config.goal, config.episodes, config.settings, config.eval_seed, progress
-        ).wins
-    return wins
+    return {name: input_for_part(name, config.part, other) if other else None for name in config.inputs}
+
+
+def _unit_cost(unit: tuple) -> tuple[int, int]:
+    """A rough order of a unit's wall time, for running the longest first: image inputs train a convolutional
+    encoder; descriptor images and DON keypoints run a network every step; then by N."""
+    kind, n = unit[2], unit[3]
+    source = kind.split(":", 1)[0]
+    return ({"descriptors": 3, "rgbd": 2, "don": 1}.get(source, 0), n)
+
+
+class _UnitRunner:
+    """Clones and evaluates one (input, N) of a run, in whichever process :func:`run_tasks` gives it.
+
+    ``config`` is ``(ImitationConfig, {part: demonstrations path})``. A unit is ``(column, input, kind, n)``:
+    column "main" (``kind`` is the input; the random-background column too at the generalisation N) or
+    "other part" (``kind`` is the input's counterpart on the other part)."""
+
+    def __init__(self, config: tuple[ImitationConfig, dict[str, str]], device: str) -> None:
+        del device  # the policies are small: every unit trains on the CPU
+        self.config, self.paths = config
+
+    def run(self, unit: tuple) -> dict:
+        config = self.config
+        column, _, kind, n = unit
+        part = config.part if column == "main" else OTHER_PART[config.part]
+        demos = read_demonstrations(self.paths[part], count=n, part=part, goal=config.goal)
+        policy = train_policy(kind, demos, config.train_steps, seed=config.seed)
+        evaluation = evaluate_policy(
+            policy, kind, part, config.goal, config.episodes, config.settings, config.eval_seed
+        )
+        record = {"wins": evaluation.wins, "steps": evaluation.steps, "seconds": evaluation.seconds}
+        if column == "main" and n == config.generalisation_n:
+            record["random background"] = evaluate_policy(
+                policy, kind, part, config.goal, config.episodes, config.settings, config.eval_seed,
+                background="random",
+            ).wins  # fmt: skip
+        return record
+
+    def close(self) -> None:
+        pass
+
+
+class _RecordRunner:
+    """Records one part's demonstrations (a task: ``(part, inputs, count, path, progress)``) for :func:`run_tasks`."""
+
+    def __init__(self, config: ImitationConfig, device: str) -> None:
+        del device
+        self.config = config
+
+    def run(self, task: tuple) -> dict:
+        part, inputs, count, path, progress = task
+        return {"path": str(_demonstrations(self.config, part, list(inputs), count, Path(path), progress))}
+
+    def close(self) -> None:
+        pass
 
 
 def run_imitation(
-    config: ImitationConfig, work: str | Path, demos: str | Path | None = None, progress: bool = True
+    config: ImitationConfig,
+    work: str | Path,
+    demos: str | Path | None = None,
+    progress: bool = True,
+    jobs: int = 1,
+    other_demos: str | Path | None = None,
 ) -> ImitationResult:
     """Record (or take ``demos``, checked to be of the config's part and goal, with every input) the largest N's
     demonstrations, clone a policy per input and N from the first N of them, evaluate each, and the generalisation
-    columns (:data:`GENERALISATION`) at ``config.generalisation_n``."""
+    columns (:data:`GENERALISATION`) at ``config.generalisation_n`` (the other part's demonstrations recorded, or
+    taken from ``other_demos``, checked likewise).
+
+    ``jobs`` > 1: the demonstrations of the two parts are recorded side by side, then every (input, N) is cloned
+    and evaluated ``jobs`` at a time, each in its own process with one torch thread, the longest first. Each
+    policy's training is seeded and its evaluation episodes are fixed, so the figures do not depend on ``jobs``."""
     _check_config(config)
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise DonGymError(f"jobs={jobs!r}: expected a positive number of processes")
     largest = max(config.demonstrations)
     work = Path(work)
+    others = _other_inputs(config) if config.generalisation_n is not None else {}
+    other_kinds = [kind for kind in others.values() if kind is not None]
+    recordings = []
     if demos is None:
         path = work / f"demos_{config.part}_{config.goal}.hdf5"
-        demos = _demonstrations(config, config.part, list(config.inputs), largest, path, progress)
-    everything = read_demonstrations(demos, count=largest, part=config.part, goal=config.goal)
-    missing = [name for name in config.inputs if name not in everything.kinds]
-    if missing:
-        raise DonGymError(f"demonstrations {str(demos)!r} lack the inputs {missing}; it has {everything.kinds}")
+        recordings.append((config.part, tuple(config.inputs), largest, str(path), progress))
+        demos = path
+    else:  # checked before anything is recorded, and once: no worker starts on a file it cannot use
+        _check_demonstrations(demos, largest, config.part, config.goal, list(config.inputs))
+    other = OTHER_PART.get(config.part)
+    if other_kinds and other_demos is not None:
+        _check_demonstrations(other_demos, int(config.generalisation_n), other, config.goal, other_kinds)
+    elif other_kinds:
+        path = work / f"demos_{other}_{config.goal}.hdf5"
+        # Side by side, only the first file's bar shows: two processes' bars would write over each other.
+        recordings.append(
+            (other, tuple(other_kinds), int(config.generalisation_n), str(path), progress and not recordings)
+        )
+    if recordings:
+        work.mkdir(parents=True, exist_ok=True)
+    if recordings and jobs == 1:
+        for part, inputs, count, path, _ in recordings:
+            _demonstrations(config, part, list(inputs), count, Path(path), progress)
+    elif recordings:
+        run_tasks(_RecordRunner, config, "cpu", recordings, jobs, False, "file", "demonstrations")
+    paths = {part: path for part, _, _, path, _ in recordings}
+    paths[config.part] = str(demos)
+    if other_kinds and other_demos is not None:
+        paths[other] = str(other_demos)
+    units = [("main", name, name, n) for name in config.inputs for n in sorted(config.demonstrations)]
+    units += [("other part", name, kind, int(config.generalisation_n)) for name, kind in others.items() if kind]
+    order = sorted(range(len(units)), key=lambda i: _unit_cost(units[i]), reverse=True)
+    records, _ = run_tasks(
+        _UnitRunner, (config, paths), "cpu", [units[i] for i in order], jobs, progress, "policy", "clone and evaluate"
+    )
+    by_unit = {units[i]: record for i, record in zip(order, records, strict=True)}
     wins: dict[str, dict[int, int]] = {}
+    seconds_per_step: dict[str, float] = {}
     generalisation: dict[str, dict[str, int | None]] = {}
     if config.generalisation_n is not None:
-        generalisation = {"random background": {}}
-    seconds_per_step: dict[str, float] = {}
+        generalisation = {"random background": {}, "other part": dict.fromkeys(config.inputs)}
     for name in config.inputs:
-        wins[name], steps, seconds = {}, 0, 0.0
-        for n in sorted(config.demonstrations):
-            subset = read_demonstrations(demos, count=n)
-            policy = train_policy(name, subset, config.train_steps, seed=config.seed, progress=progress)
-            evaluation = evaluate_policy(
-                policy, name, config.part, config.goal, config.episodes, config.settings, config.eval_seed, progress
-            )
-            wins[name][n] = evaluation.wins
-            steps, seconds = steps + evaluation.steps, seconds + evaluation.seconds
-            if n == config.generalisation_n:
-                generalisation["random background"][name] = evaluate_policy(
-                    policy, name, config.part, config.goal, config.episodes, config.settings, config.eval_seed,
-                    progress, background="random",
-                ).wins  # fmt: skip
-        seconds_per_step[name] = seconds / max(steps, 1)
-    if config.generalisation_n is not None:
-        generalisation["other part"] = _other_part(config, work, progress)
+        main = [by_unit[("main", name, name, n)] for n in sorted(config.demonstrations)]
+        wins[name] = {n: r["wins"] for n, r in zip(sorted(config.demonstrations), main, strict=True)}
+        seconds_per_step[name] = sum(r["seconds"] for r in main) / max(sum(r["steps"] for r in main), 1)
+        for record in main:
+            if "random background" in record:
+                generalisation["random background"][name] = record["random background"]
+        kind = others.get(name)
+        if kind is not None:
+            generalisation["other part"][name] = by_unit[("other part", name, kind, int(config.generalisation_n))][
+                "wins"
+            ]
     return ImitationResult(config, wins, str(demos), generalisation, seconds_per_step)
