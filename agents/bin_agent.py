@@ -140,6 +140,15 @@ REFINE_MAX_POINTS = 400
 #: blocked), the agent pushes the part away from the wall first (the env's "push" step), at most this many times
 #: in a row before it tries the grasp anyway. 0: never push.
 MAX_PUSHES_IN_A_ROW = 2
+#: A part standing on an end, when it is the preferred grasp, is first toppled where it stands (a push at its top:
+#: :func:`topple_standing`), which costs less motion than setting it down at the regrasp station and grasping it
+#: there; a standing part whose top lies within TOPPLE_TRIED_RADIUS_M (m) of this many earlier topples goes to the
+#: station. 0: never topple (docs/bin.md gives the development piles' figures).
+MAX_TOPPLES_PER_PART = 1
+TOPPLE_TRIED_RADIUS_M = 0.03
+#: The topple presses this many of the part's radii short of its top's centre (on the side it is pushed from), so
+#: the fingers drag the top's near half over the far edge of its foot.
+TOPPLE_OFFSET_RADII = 0.5
 
 
 @dataclass(frozen=True)
@@ -309,6 +318,27 @@ def push_away_from_walls(candidate: GraspCandidate, estimate: InstanceEstimate) 
     direction = across if float(across @ towards_middle) >= 0.0 else -across
     yaw = float(np.arctan2(direction[1], direction[0]))
     return np.array([*point, yaw, float(STEP_KINDS.index("push"))], dtype=np.float32)
+
+
+def topple_standing(estimate: InstanceEstimate, object_model: ObjectModel) -> np.ndarray:
+    """The push step (5,) float32 ``[x, y, z, yaw, kind]`` that topples a standing instance: the closed fingers come
+    down on its top :data:`TOPPLE_OFFSET_RADII` radii short of the top's centre and push towards the bin's middle
+    (where the part has the most room to fall), at the height of its upper axis point (the env's push comes down
+    until it touches)."""
+    top = max(np.asarray(estimate.axis_points_world, dtype=np.float64), key=lambda p: float(p[2]))
+    x0, x1, y0, y1 = bin_inner_bounds()
+    towards_middle = np.array([(x0 + x1) / 2, (y0 + y1) / 2]) - top[:2]
+    yaw = float(np.arctan2(towards_middle[1], towards_middle[0]))
+    radius = lying_footprint_m(object_model)[1] / 2
+    press = top[:2] - TOPPLE_OFFSET_RADII * radius * np.array([np.cos(yaw), np.sin(yaw)])
+    return np.array([*press, top[2], yaw, float(STEP_KINDS.index("push"))], dtype=np.float32)
+
+
+def times_toppled(estimate: InstanceEstimate, topple_actions: Sequence[np.ndarray]) -> int:
+    """How many earlier topples (their push actions) pressed within :data:`TOPPLE_TRIED_RADIUS_M` (xy) of the top of
+    the standing ``estimate``."""
+    top = max(np.asarray(estimate.axis_points_world, dtype=np.float64), key=lambda p: float(p[2]))
+    return sum(float(np.linalg.norm(top[:2] - np.asarray(a[:2]))) <= TOPPLE_TRIED_RADIUS_M for a in topple_actions)
 
 
 def times_tried(action: np.ndarray, failed_actions: Sequence[np.ndarray]) -> int:
@@ -651,12 +681,17 @@ class _BinAgentBase:
         #: Pushes in a row allowed before a grasp blocked by a wall is tried anyway (:data:`MAX_PUSHES_IN_A_ROW`).
         self.max_pushes_in_a_row = MAX_PUSHES_IN_A_ROW
         self.pushes_in_a_row = 0
+        #: Topples of one standing part before it goes to the station (:data:`MAX_TOPPLES_PER_PART`), and this
+        #: episode's topples (their push actions).
+        self.max_topples_per_part = MAX_TOPPLES_PER_PART
+        self.topple_actions: list[np.ndarray] = []
 
     def reset(self) -> None:
-        """Forget the failed grasps (call at every env reset)."""
+        """Forget the failed grasps and the topples (call at every env reset)."""
         self.failed_actions = []
         self.last_action = None
         self.pushes_in_a_row = 0
+        self.topple_actions = []
 
     def observe_outcome(self, outcome: str) -> None:
         """Tell the agent the outcome of its last action (``info["outcome"]``): a ``"fail"`` (nothing lifted, as the
@@ -672,7 +707,8 @@ class _BinAgentBase:
 
     def act(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None = None) -> np.ndarray:
         """The grasp-mode action (5,) float32 ``[x, y, z, yaw, kind]`` for one observation, the preferred grasp (or a
-        push away from a wall that blocks it: :data:`MAX_PUSHES_IN_A_ROW`) (``info``: the step's,
+        push away from a wall that blocks it: :data:`MAX_PUSHES_IN_A_ROW`; or, where it stands on an end, a push
+        that topples it: :data:`MAX_TOPPLES_PER_PART`) (``info``: the step's,
         which the oracle and oracle descriptors need, and whose ``phase`` "regrasp" says the observation shows the
         regrasp station: :meth:`station_estimates`). DonGymError when no instance of the target part is found."""
         at_station = info is not None and info.get("phase") == "regrasp"
@@ -688,10 +724,19 @@ class _BinAgentBase:
         ranking = rank_grasps(candidates, estimates, self.failed_actions)
         self.last_estimates, self.last_ranking = estimates, ranking
         best = ranking[0]
+        estimate = estimates[best.estimate_index]
         blocked = not best.walls_clear and best.kind != "standing" and not at_station
-        if blocked and self.pushes_in_a_row < self.max_pushes_in_a_row:
+        topple = (
+            best.kind == "standing"
+            and not at_station
+            and times_toppled(estimate, self.topple_actions) < self.max_topples_per_part
+        )
+        if topple:
+            self.last_action = topple_standing(estimate, self.object_model)
+            self.topple_actions.append(self.last_action)
+        elif blocked and self.pushes_in_a_row < self.max_pushes_in_a_row:
             self.pushes_in_a_row += 1
-            self.last_action = push_away_from_walls(best, estimates[best.estimate_index])
+            self.last_action = push_away_from_walls(best, estimate)
         else:
             self.pushes_in_a_row = 0
             self.last_action = np.asarray(best.action, dtype=np.float32)

@@ -133,6 +133,53 @@ def test_a_part_against_a_wall_is_pushed_away_before_it_is_grasped():
         env.close()
 
 
+def test_a_standing_part_is_toppled_where_it_stands_before_the_station_is_used():
+    from don_gym.agents.bin_agent import TOPPLE_TRIED_RADIUS_M, times_toppled, topple_standing
+    from don_gym.sim.bin_task import BIN_CENTER_XY_M, bin_inner_bounds
+    from don_gym.sim.task import TABLE_TOP_Z_M
+
+    env = BinPickEnv(parts={"toolcap": 1}, image_size=(160, 120), sensor="ideal", max_steps=6)
+    try:
+        env.reset(seed=200)
+        part = env.task.instances[0]
+        stand_xy = (BIN_CENTER_XY_M[0] - 0.04, BIN_CENTER_XY_M[1] + 0.03)
+        env.task.stand(part, stand_xy, plus_up=True)
+        x0, x1, y0, y1 = bin_inner_bounds()
+        # A grasp where nothing lies (it fails) to observe the part standing.
+        obs, _, _, _, info = env.step(np.array([x1 - 0.03, y1 - 0.03, TABLE_TOP_Z_M + 0.02, 0.0, 0.0], np.float32))
+        never = BinOracleAgent(env)
+        never.max_topples_per_part = 0
+        assert int(never.act(obs, info)[4]) == 2  # straight to the station
+        agent = BinOracleAgent(env)
+        agent.reset()
+        action = agent.act(obs, info)
+        # A push at the top, short of its centre on the side away from the bin's middle, towards the middle.
+        assert int(action[4]) == 3 and len(agent.topple_actions) == 1
+        towards_middle = np.asarray(BIN_CENTER_XY_M) - np.asarray(stand_xy)
+        assert abs(np.angle(np.exp(1j * (float(action[3]) - np.arctan2(towards_middle[1], towards_middle[0]))))) < 0.05
+        assert float((action[:2] - np.asarray(stand_xy)) @ towards_middle) < 0
+        assert np.linalg.norm(action[:2] - np.asarray(stand_xy)) < 0.015
+        obs, _, _, _, info = env.step(action)
+        assert info["outcome"] == "pushed"
+        assert abs(float(part.body.plus_axis_world()[2])) < 0.3  # it lies now
+        outcomes = []
+        for _ in range(3):  # grasped lying, in the bin (after a push if it fell against a wall)
+            action = agent.act(obs, info)
+            obs, _, terminated, _, info = env.step(action)
+            outcomes.append((int(action[4]), info["outcome"], bool(info["regrasp"])))
+            if terminated:
+                break
+        assert outcomes[-1] in ((0, "grasp_and_place", False), (1, "grasp_and_place", False)), outcomes
+    finally:
+        env.close()
+    # Where the topple did not tip it, the part goes to the station: one topple per place.
+    estimate = InstanceEstimate(np.array([[0.5, 0.0, 0.03], [0.5, 0.0, 0.07]]))
+    push = topple_standing(estimate, load_object("toolcap"))
+    assert times_toppled(estimate, [push]) == 1
+    moved = InstanceEstimate(estimate.axis_points_world + [TOPPLE_TRIED_RADIUS_M + 0.02, 0.0, 0.0])
+    assert times_toppled(moved, [push]) == 0
+
+
 def test_a_push_goes_across_the_perceived_axis_towards_the_bin_s_middle():
     from don_gym.agents.bin_agent import GraspCandidate, push_away_from_walls
     from don_gym.sim.bin_task import bin_inner_bounds

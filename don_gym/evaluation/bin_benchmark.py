@@ -216,7 +216,7 @@ def run_pile(env: Any, agent: Any, method: str, pile: int, seed: int) -> dict[st
     base = env.unwrapped
     plus_axis = np.asarray(base.models[base.target].plus_axis, dtype=np.float64)
     counts = {"grasp_and_place": 0, "grasp_only": 0, "fail": 0, "wrong_part": 0}
-    axis_lifts = flipped = attempts = regrasps = regrasp_placed = pushes = 0
+    axis_lifts = flipped = attempts = regrasps = regrasp_placed = pushes = topples = 0
     motion_s = perception_s = 0.0
     targets = int(info["targets_left"])
     agent_error, end_reason = None, None
@@ -239,6 +239,7 @@ def run_pile(env: Any, agent: Any, method: str, pile: int, seed: int) -> dict[st
             continue  # the attempt goes on at the regrasp station
         if info["outcome"] == "pushed":
             pushes += 1  # no attempt: its motion is charged to the pace all the same
+            topples += kind == "standing"  # a push that topples a standing part (the agent's choice)
         else:
             attempts += 1
             counts[info["outcome"]] += 1
@@ -268,6 +269,7 @@ def run_pile(env: Any, agent: Any, method: str, pile: int, seed: int) -> dict[st
         "regrasps": regrasps,
         "regrasp_placed": int(regrasp_placed),
         "pushes": pushes,
+        "topples": topples,
         "motion_seconds": motion_s,
         "perception_seconds": perception_s,
         "agent_error": agent_error,
@@ -444,18 +446,21 @@ def bin_table(result: BinBenchmarkResult) -> str:
         f"{c.piles} piles (seeds {c.seed}-{c.seed + c.piles - 1}), the same piles for every method; rates with "
         "their 95% Wilson interval.",
         "",
-        "| method | " + " | ".join(label for _, label in RATE_COLUMNS) + " | attempts | pushes |",
+        "| method | " + " | ".join(label for _, label in RATE_COLUMNS) + " | attempts | pushes (of them topples) |",
         "|---|" + "---|" * (len(RATE_COLUMNS) + 2),
     ]
     for method in c.methods:
         rates = result.rates(method)
         cells = [format_rate(*rates[name]) for name, _ in RATE_COLUMNS]
         pushes = sum(int(e.get("pushes", 0)) for e in result.select(method))
-        lines.append(f"| {method} | " + " | ".join(cells) + f" | {rates['picks_per_attempt'][1]} | {pushes} |")
+        topples = sum(int(e.get("topples", 0)) for e in result.select(method))
+        pushed = f"{pushes} ({topples})"
+        lines.append(f"| {method} | " + " | ".join(cells) + f" | {rates['picks_per_attempt'][1]} | {pushed} |")
     lines += [
         "",
         "Pace in simulated time: per attempt the scripted motion's simulated seconds (grasp, lift, carry, place, "
-        "retract; and the pushes': a part against a wall rolled away from it, not an attempt) plus the move back to "
+        "retract; and the pushes': a part against a wall rolled away from it or a standing part toppled, not an "
+        "attempt) plus the move back to "
         "the observation pose at the script's free-space speed (*motion*), and the "
         "method's perception and planning time measured on this machine (*perception*); placements per hour = "
         "placements / (motion + perception) x 3600, with a 95% interval from resampling piles. Ratios to the "

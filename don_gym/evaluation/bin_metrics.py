@@ -32,7 +32,8 @@ __all__ = [
 #: ``fails``: nothing lifted; ``wrong_part_picks``: another part lifted); ``target_axis_lifts``: target lifts by a
 #: grasp across or along the axis, of which ``flipped`` had the believed +axis more than 90 degrees off the true
 #: one; ``regrasps`` (attempts that went through the regrasp station) and ``regrasp_placed`` (of those, placed);
-#: ``pushes`` (steps that rolled a part away from a wall: no attempts);
+#: ``pushes`` (steps that rolled a part away from a wall or toppled a standing one: no attempts), ``topples`` (of
+#: those, the topples);
 #: ``motion_seconds`` (simulated seconds of the scripted motion and of the moves back to the observation pose),
 #: ``perception_seconds`` (the agent's measured time choosing its actions); ``agent_error`` (the agent gave up);
 #: ``seconds`` (wall time of the episode).
@@ -53,6 +54,7 @@ EPISODE_KEYS = (
     "regrasps",
     "regrasp_placed",
     "pushes",
+    "topples",
     "motion_seconds",
     "perception_seconds",
     "agent_error",
