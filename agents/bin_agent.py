@@ -140,11 +140,12 @@ REFINE_MAX_POINTS = 400
 #: blocked), the agent pushes the part away from the wall first (the env's "push" step), at most this many times
 #: in a row before it tries the grasp anyway. 0: never push.
 MAX_PUSHES_IN_A_ROW = 2
-#: A part standing on an end, when it is the preferred grasp, is first toppled where it stands (a push at its top:
-#: :func:`topple_standing`), which costs less motion than setting it down at the regrasp station and grasping it
-#: there; a standing part whose top lies within TOPPLE_TRIED_RADIUS_M (m) of this many earlier topples goes to the
-#: station. 0: never topple (docs/bin.md gives the development piles' figures).
-MAX_TOPPLES_PER_PART = 1
+#: With ``agent.max_topples_per_part`` > 0, a part standing on an end, when it is the preferred grasp, is first
+#: toppled where it stands (a push at its top: :func:`topple_standing`), which costs less motion than setting it
+#: down at the regrasp station and grasping it there; a standing part whose top lies within TOPPLE_TRIED_RADIUS_M
+#: (m) of that many earlier topples goes to the station. The default, 0 (never topple), stays until the test piles
+#: have measured it (docs/bin.md gives the development piles' figures).
+MAX_TOPPLES_PER_PART = 0
 TOPPLE_TRIED_RADIUS_M = 0.03
 #: The topple presses this many of the part's radii short of its top's centre (on the side it is pushed from), so
 #: the fingers drag the top's near half over the far edge of its foot.
