@@ -37,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import FIGURES, REPO_ROOT, OtherProcessLoad, record_section, replace_block, require_blocks  # noqa: E402
 
 import don_gym  # noqa: E402,F401  (registers the env ids)
+from don_gym.cli import positive_int  # noqa: E402
 from don_gym.evaluation.demonstrations import RecordSettings, read_demonstrations, record_demonstrations  # noqa: E402
 from don_gym.evaluation.imitation import (  # noqa: E402
     DEVELOPMENT_EVAL_SEED,
@@ -150,13 +151,11 @@ def main(argv: list[str] | None = None) -> int:
         help="likewise the other part's, for the generalisation column (e.g. WORK/demos_shaft_lift.hdf5)",
     )  # fmt: skip
     parser.add_argument(
-        "--jobs", type=int, default=None, metavar="N",
+        "--jobs", type=positive_int, default=None, metavar="N",
         help="clone and evaluate N policies at once, one process each (default: one per core); the figures do not "
         "depend on it",
     )  # fmt: skip
     args = parser.parse_args(argv)
-    if args.jobs is not None and args.jobs < 1:
-        parser.exit(2, f"bench_imitation.py: error: --jobs {args.jobs}: expected a positive number of processes\n")
     jobs = args.jobs or len(os.sched_getaffinity(0))
     every = all_inputs(args.part)
     if args.inputs is not None:
