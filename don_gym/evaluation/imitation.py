@@ -327,33 +327,25 @@ def run_imitation(
     work = Path(work)
     others = _other_inputs(config) if config.generalisation_n is not None else {}
     other_kinds = [kind for kind in others.values() if kind is not None]
-    recordings = []
-    if demos is None:
-        path = work / f"demos_{config.part}_{config.goal}.hdf5"
-        recordings.append((config.part, tuple(config.inputs), largest, str(path), progress))
-        demos = path
-    else:  # checked before anything is recorded, and once: no worker starts on a file it cannot use
-        _check_demonstrations(demos, largest, config.part, config.goal, list(config.inputs))
-    other = OTHER_PART.get(config.part)
-    if other_kinds and other_demos is not None:
-        _check_demonstrations(other_demos, int(config.generalisation_n), other, config.goal, other_kinds)
-    elif other_kinds:
-        path = work / f"demos_{other}_{config.goal}.hdf5"
-        # Side by side, only the first file's bar shows: two processes' bars would write over each other.
-        recordings.append(
-            (other, tuple(other_kinds), int(config.generalisation_n), str(path), progress and not recordings)
-        )
+    # Each part's demonstrations: taken (checked before anything is recorded, and once, so that no worker starts
+    # on a file it cannot use) or recorded into ``work``, side by side with ``jobs`` > 1 (only the first file's bar
+    # then shows: two processes' bars would write over each other).
+    recordings: list[tuple[str, tuple[str, ...], int, str, bool]] = []
+    paths: dict[str, str] = {}
+    wanted = [(config.part, list(config.inputs), largest, demos)]
+    if other_kinds:
+        wanted.append((OTHER_PART[config.part], other_kinds, int(config.generalisation_n), other_demos))
+    for part, inputs, count, given in wanted:
+        if given is not None:
+            _check_demonstrations(given, count, part, config.goal, inputs)
+            paths[part] = str(given)
+        else:
+            paths[part] = str(work / f"demos_{part}_{config.goal}.hdf5")
+            recordings.append((part, tuple(inputs), count, paths[part], progress and (jobs == 1 or not recordings)))
     if recordings:
         work.mkdir(parents=True, exist_ok=True)
-    if recordings and jobs == 1:
-        for part, inputs, count, path, _ in recordings:
-            _demonstrations(config, part, list(inputs), count, Path(path), progress)
-    elif recordings:
         run_tasks(_RecordRunner, config, "cpu", recordings, jobs, False, "file", "demonstrations")
-    paths = {part: path for part, _, _, path, _ in recordings}
-    paths[config.part] = str(demos)
-    if other_kinds and other_demos is not None:
-        paths[other] = str(other_demos)
+    demos = paths[config.part]
     units = [("main", name, name, n) for name in config.inputs for n in sorted(config.demonstrations)]
     units += [("other part", name, kind, int(config.generalisation_n)) for name, kind in others.items() if kind]
     order = sorted(range(len(units)), key=lambda i: _unit_cost(units[i]), reverse=True)
