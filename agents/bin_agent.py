@@ -61,6 +61,7 @@ from don_gym.perception.keypoints import (
     robust_point_from_depth,
 )
 from don_gym.sim.bin_task import (
+    BIN_CENTER_XY_M,
     FINGER_BELOW_GRASP_M,
     FINGER_HALF_WIDTH_M,
     FINGER_OUTSIDE_PAD_M,
@@ -169,6 +170,11 @@ class InstanceEstimate:
     instance: int | None = None
     #: Indices of the (minus-end, plus-end) ring candidates it was made of (None: not from candidates, or one ring).
     rings: tuple[int | None, int | None] | None = None
+
+    @property
+    def upper_axis_point(self) -> np.ndarray:
+        """(3,) the higher of the two axis points (the top of a standing instance)."""
+        return max(np.asarray(self.axis_points_world, dtype=np.float64), key=lambda p: float(p[2]))
 
     @property
     def direction(self) -> np.ndarray:
@@ -314,8 +320,7 @@ def push_away_from_walls(candidate: GraspCandidate, estimate: InstanceEstimate) 
     (a round part rolls that way), on the side of the bin's centre."""
     point = np.asarray(candidate.action[:3], dtype=np.float64)
     along, across = _closing_frame(float(np.arctan2(estimate.direction[1], estimate.direction[0])))
-    x0, x1, y0, y1 = bin_inner_bounds()
-    towards_middle = np.array([(x0 + x1) / 2, (y0 + y1) / 2]) - point[:2]
+    towards_middle = BIN_CENTER_XY_M - point[:2]
     direction = across if float(across @ towards_middle) >= 0.0 else -across
     yaw = float(np.arctan2(direction[1], direction[0]))
     return np.array([*point, yaw, float(STEP_KINDS.index("push"))], dtype=np.float32)
@@ -326,9 +331,8 @@ def topple_standing(estimate: InstanceEstimate, object_model: ObjectModel) -> np
     down on its top :data:`TOPPLE_OFFSET_RADII` radii short of the top's centre and push towards the bin's middle
     (where the part has the most room to fall), at the height of its upper axis point (the env's push comes down
     until it touches)."""
-    top = max(np.asarray(estimate.axis_points_world, dtype=np.float64), key=lambda p: float(p[2]))
-    x0, x1, y0, y1 = bin_inner_bounds()
-    towards_middle = np.array([(x0 + x1) / 2, (y0 + y1) / 2]) - top[:2]
+    top = estimate.upper_axis_point
+    towards_middle = BIN_CENTER_XY_M - top[:2]
     yaw = float(np.arctan2(towards_middle[1], towards_middle[0]))
     radius = lying_footprint_m(object_model)[1] / 2
     press = top[:2] - TOPPLE_OFFSET_RADII * radius * np.array([np.cos(yaw), np.sin(yaw)])
@@ -338,7 +342,7 @@ def topple_standing(estimate: InstanceEstimate, object_model: ObjectModel) -> np
 def times_toppled(estimate: InstanceEstimate, topple_actions: Sequence[np.ndarray]) -> int:
     """How many earlier topples (their push actions) pressed within :data:`TOPPLE_TRIED_RADIUS_M` (xy) of the top of
     the standing ``estimate``."""
-    top = max(np.asarray(estimate.axis_points_world, dtype=np.float64), key=lambda p: float(p[2]))
+    top = estimate.upper_axis_point
     return sum(float(np.linalg.norm(top[:2] - np.asarray(a[:2]))) <= TOPPLE_TRIED_RADIUS_M for a in topple_actions)
 
 
