@@ -38,6 +38,7 @@ from _results import FIGURES, REPO_ROOT, OtherProcessLoad, record_section, repla
 
 import don_gym  # noqa: E402,F401  (registers the env ids)
 from don_gym.cli import positive_int  # noqa: E402
+from don_gym.errors import DonGymError  # noqa: E402
 from don_gym.evaluation.demonstrations import RecordSettings, read_demonstrations, record_demonstrations  # noqa: E402
 from don_gym.evaluation.imitation import (  # noqa: E402
     DEVELOPMENT_EVAL_SEED,
@@ -193,4 +194,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except DonGymError as exc:  # a bad --demos-file, --other-demos-file: one line, no traceback
+        sys.exit(f"bench_imitation.py: {exc}")

@@ -33,3 +33,15 @@ def test_bad_inputs_are_refused_in_one_line_before_anything_runs(capsys, args, m
     assert exit_info.value.code == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and message in err and "Traceback" not in err
+
+
+def test_a_missing_demonstrations_file_is_one_line_without_a_traceback(tmp_path):
+    import subprocess
+
+    script = Path(bench_imitation.__file__)
+    command = [sys.executable, str(script), "--parts", "comparison", "--inputs", "state",
+               "--demos-file", str(tmp_path / "none.hdf5"), "--work", str(tmp_path / "work")]  # fmt: skip
+    done = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert done.returncode != 0
+    err = done.stderr.strip()
+    assert len(err.splitlines()) == 1 and "none.hdf5" in err and "no such file" in err, err
