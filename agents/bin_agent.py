@@ -144,9 +144,8 @@ MAX_PUSHES_IN_A_ROW = 2
 #: With ``agent.max_topples_per_part`` > 0, a part standing on an end, when it is the preferred grasp, is first
 #: toppled where it stands (a push at its top: :func:`topple_standing`), which costs less motion than setting it
 #: down at the regrasp station and grasping it there; a standing part whose top lies within TOPPLE_TRIED_RADIUS_M
-#: (m) of that many earlier topples goes to the station. The default, 0 (never topple), stays until the test piles
-#: have measured it (docs/bin.md gives the development piles' figures).
-MAX_TOPPLES_PER_PART = 0
+#: (m) of that many earlier topples goes to the station. 0: never topple (every standing part goes to the station).
+MAX_TOPPLES_PER_PART = 1
 TOPPLE_TRIED_RADIUS_M = 0.03
 #: The topple presses this many of the part's radii short of its top's centre (on the side it is pushed from), so
 #: the fingers drag the top's near half over the far edge of its foot.
@@ -633,12 +632,14 @@ def refine_axis_with_depth(
 class _DepthView:
     """What the descriptor agent's searches need of one observation's depth, worked out once: the depth image
     (H, W) float32 (m), the intrinsics, ``T_world_camera`` (4, 4), the point cloud (N, 3) of every pixel with depth
-    (world, m), and the candidate suppression window (pixels: a ring's diameter at the median depth)."""
+    (world, m), the median depth (m) and the candidate suppression window (pixels: a ring's diameter at the median
+    depth). The agents' searches and their grasp choice share one per observation."""
 
     depth_m: np.ndarray
     intrinsics: CameraIntrinsics
     T_world_camera: np.ndarray
     cloud_world: np.ndarray
+    typical_z_m: float
     window_px: float
 
     @classmethod
@@ -651,7 +652,7 @@ class _DepthView:
         # One candidate per ring: minima closer than a ring's diameter are one ring's arc.
         window_px = intrinsics.fx * window_m / typical_z
         cloud = world_point_cloud(depth, intrinsics, T_world_camera)
-        return cls(depth, intrinsics, T_world_camera, cloud, window_px)
+        return cls(depth, intrinsics, T_world_camera, cloud, typical_z, window_px)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -704,7 +705,10 @@ class _BinAgentBase:
         if outcome == "fail" and self.last_action is not None:
             self.failed_actions.append(self.last_action)
 
-    def estimates(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None) -> list[InstanceEstimate]:
+    def estimates(
+        self, obs: Mapping[str, Any], info: Mapping[str, Any] | None, view: _DepthView | None = None
+    ) -> list[InstanceEstimate]:
+        """The target instances ``obs`` shows (``view``: the observation's depth worked out, when the caller has it)."""
         raise NotImplementedError
 
     def station_estimates(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None) -> list[InstanceEstimate]:
@@ -717,15 +721,15 @@ class _BinAgentBase:
         which the oracle and oracle descriptors need, and whose ``phase`` "regrasp" says the observation shows the
         regrasp station: :meth:`station_estimates`). DonGymError when no instance of the target part is found."""
         at_station = info is not None and info.get("phase") == "regrasp"
-        estimates = self.station_estimates(obs, info) if at_station else self.estimates(obs, info)
+        view = _DepthView.of(obs, self.targets.window_m)
+        estimates = self.station_estimates(obs, info) if at_station else self.estimates(obs, info, view)
         if not estimates:
             raise DonGymError(f"no instance of {self.object_model.name!r} found in the image")
-        intrinsics = CameraIntrinsics.from_array(obs["camera_intrinsics"])
-        depth = np.asarray(obs["depth"], dtype=np.float64)
-        cloud = world_point_cloud(depth, intrinsics, obs["camera_pose"])
-        typical_z = float(np.median(depth[depth > 0])) if (depth > 0).any() else 0.45
-        pixel_area = (typical_z / intrinsics.fx) * (typical_z / intrinsics.fy)
-        candidates = grasp_candidates(estimates, cloud, self.object_model, self.targets, self.grasp_axial_m, pixel_area)
+        intrinsics = view.intrinsics
+        pixel_area = (view.typical_z_m / intrinsics.fx) * (view.typical_z_m / intrinsics.fy)
+        candidates = grasp_candidates(
+            estimates, view.cloud_world, self.object_model, self.targets, self.grasp_axial_m, pixel_area
+        )
         ranking = rank_grasps(candidates, estimates, self.failed_actions)
         self.last_estimates, self.last_ranking = estimates, ranking
         best = ranking[0]
@@ -761,7 +765,9 @@ class BinOracleAgent(_BinAgentBase):
         self._setup_geometry(object_model, axis_end_targets(object_model, fractions=fractions))
         self.method = "oracle"
 
-    def estimates(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None) -> list[InstanceEstimate]:
+    def estimates(
+        self, obs: Mapping[str, Any], info: Mapping[str, Any] | None, view: _DepthView | None = None
+    ) -> list[InstanceEstimate]:
         if info is None or "instances" not in info:
             raise DonGymError("the bin oracle needs the step's info with 'instances' (true poses); pass act(obs, info)")
         model = self.object_model
@@ -868,12 +874,14 @@ class BinAxisGraspAgent(_BinAgentBase):
     def method(self) -> str:
         return self.source.method
 
-    def estimates(self, obs: Mapping[str, Any], info: Mapping[str, Any] | None) -> list[InstanceEstimate]:
+    def estimates(
+        self, obs: Mapping[str, Any], info: Mapping[str, Any] | None, view: _DepthView | None = None
+    ) -> list[InstanceEstimate]:
         descriptor_image = self.source.descriptor_image(obs, info)
         # The distances do not depend on the threshold: computed once for both searches.
         distances = descriptor_distances(descriptor_image, self.reference_descriptors)
         middle = descriptor_distances(descriptor_image, self.middle_descriptor[None])[0]
-        view = _DepthView.of(obs, self.targets.window_m)
+        view = view if view is not None else _DepthView.of(obs, self.targets.window_m)
         found = self._estimates_below(distances, middle, view, self.match_threshold)
         if not found and self.fallback_threshold is not None:
             found = self._estimates_below(distances, middle, view, self.fallback_threshold)

@@ -17,6 +17,8 @@
     python benchmarks/bench_imitation.py --quick          # the CLI's --quick comparison, a short cost; no record
     python benchmarks/bench_imitation.py --parts comparison --demos-file WORK/demos_toolcap_lift.hdf5 \
         --other-demos-file WORK/demos_shaft_lift.hdf5     # the demonstrations an earlier --work WORK recorded
+    python benchmarks/bench_imitation.py --parts comparison --inputs state descriptors:toolcap/supervised-edge \
+        --record-as imitation-descriptors                 # its own section and figure; "imitation" kept
 
 The comparison clones and evaluates ``--jobs`` policies at once (default: one per core), each in its own process
 with one torch thread; each policy is seeded and its episodes fixed, so the figures do not depend on it.
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 import tempfile
 from pathlib import Path
@@ -94,10 +97,17 @@ def cost(part: str, inputs: list[str], episodes: int, work: Path) -> str:
 
 
 def comparison(
-    config: ImitationConfig, work: Path, quick: bool, jobs: int, demos: str | None, other_demos: str | None
+    config: ImitationConfig,
+    work: Path,
+    quick: bool,
+    jobs: int,
+    demos: str | None,
+    other_demos: str | None,
+    section: str = "imitation",
 ) -> str:
+    """Markdown: the comparison's table, its target and its figure (``FIGURES/<section>.png``)."""
     result = run_imitation(config, work, demos=demos, progress=True, jobs=jobs, other_demos=other_demos)
-    figure = FIGURES / "imitation.png"
+    figure = FIGURES / f"{section}.png"
     if not quick:
         plot_success_against_demonstrations(
             result.rates(), figure, title=f"behaviour cloning, {config.part} {config.goal}"
@@ -112,7 +122,8 @@ def comparison(
         f'`background="random"`, and the recipe on the shaft (its demonstrations, its networks). ms / step: the '
         f"wall time of an evaluation step with the input, {jobs} policies cloned and evaluated at once (`--jobs`, "
         f"one torch thread each; the cost table below times each input alone).",
-        *(["", f"Inputs not run this time (`--inputs`): {', '.join(f'`{n}`' for n in left_out)}."]
+        *(["", f"Inputs not run this time (`--inputs`): {', '.join(f'`{n}`' for n in left_out)}"
+               + ("." if section == "imitation" else "; the section `imitation` has the others.")]
           if left_out and not quick else []),
         "",
         result.table(),
@@ -152,6 +163,12 @@ def main(argv: list[str] | None = None) -> int:
         help="likewise the other part's, for the generalisation column (e.g. WORK/demos_shaft_lift.hdf5)",
     )  # fmt: skip
     parser.add_argument(
+        "--record-as", default="imitation", metavar="SECTION",
+        help="record the comparison as this RESULTS.md section, with its figure benchmarks/figures/SECTION.png "
+        "(default: imitation, which the README shows; another name leaves the README and that section as they are: "
+        "for an input run on its own, beside state as its baseline)",
+    )  # fmt: skip
+    parser.add_argument(
         "--jobs", type=positive_int, default=None, metavar="N",
         help="clone and evaluate N policies at once, one process each (default: one per core); the figures do not "
         "depend on it",
@@ -164,6 +181,9 @@ def main(argv: list[str] | None = None) -> int:
         if unknown or args.quick:
             parser.exit(2, f"bench_imitation.py: error: --inputs {' '.join(args.inputs)}: "
                            + (f"expected some of {every}\n" if unknown else "not with --quick\n"))  # fmt: skip
+    if not re.fullmatch(r"imitation(-[a-z0-9]+)*", args.record_as):
+        parser.exit(2, f"bench_imitation.py: error: --record-as {args.record_as!r}: expected imitation or "
+                       "imitation-<lowercase words with dashes>\n")  # fmt: skip
     inputs = every if args.inputs is None else [name for name in every if name in args.inputs]
     torch.set_num_threads(1)
     if not args.quick:
@@ -185,11 +205,15 @@ def main(argv: list[str] | None = None) -> int:
                 config = ImitationConfig(part=args.part, eval_seed=eval_seed, **preset)
             else:
                 config = ImitationConfig(part=args.part, inputs=tuple(inputs), generalisation_n=50, eval_seed=eval_seed)
-            body = comparison(config, work, args.quick, jobs, args.demos_file, args.other_demos_file)
+            body = comparison(config, work, args.quick, jobs, args.demos_file, args.other_demos_file, args.record_as)
             print(body)
             if not args.quick:
-                record_section("imitation", "Behaviour cloning at equal demonstrations (bench_imitation)", body)
-                replace_block(README, README_BLOCKS["comparison"], body)
+                own = args.record_as == "imitation"
+                title = "Behaviour cloning at equal demonstrations (bench_imitation)"
+                record_section(args.record_as, title if own else f"{title}: {', '.join(config.inputs)}", body,
+                               after=None if own else "imitation")  # fmt: skip
+                if own:
+                    replace_block(README, README_BLOCKS["comparison"], body)
     return 0
 
 

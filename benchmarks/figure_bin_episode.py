@@ -1,8 +1,8 @@
-"""A pile being cleared: the frames of one bin episode (a development pile), each with the grasp the agent is about
-to make drawn on the wrist camera's image (the finger pads and the line they close along, the believed +axis), its
-kind and its outcome below. Writes ``benchmarks/figures/bin_episode.png`` for docs/bin.md; measures nothing.
+"""A pile being cleared: the frames of one bin episode (a development pile), each with the grasp (or push) the agent
+is about to make drawn on the wrist camera's image (the finger pads and the line they close along, the believed
++axis), its kind and its outcome below. Writes ``benchmarks/figures/bin_episode.png`` for docs/bin.md; measures nothing.
 
-    python benchmarks/figure_bin_episode.py                 # the oracle on development pile 9 (it regrasps twice)
+    python benchmarks/figure_bin_episode.py                 # the oracle on development pile 9 (topples, a regrasp)
     python benchmarks/figure_bin_episode.py --pile 3 --method oracle-descriptors --out /tmp/episode.png
 """
 
@@ -65,7 +65,7 @@ def main() -> None:
         seed = pile_seed(BIN_DEVELOPMENT_SEED, args.pile)
         obs, info = env.reset(seed=seed)
         agent.reset()
-        frames, attempt = [], 1
+        frames, step = [], 1
         while True:
             try:
                 action = agent.act(obs, info)
@@ -74,14 +74,17 @@ def main() -> None:
                 break
             # The frame shows the image the grasp was chosen on, the grasp drawn, and what came of it.
             kind = STEP_KINDS[int(round(float(action[4])))]
+            # A push at a standing part is a topple; elsewhere it rolls a part away from a wall.
+            label = "push (topple)" if kind == "push" and agent.last_ranking[0].kind == "standing" else kind
             opening = grasp_opening_m(env.model, kind, action[:2], float(action[3]))
             fingers, axis = grasp_overlay(action, obs, opening)
             frame = {"rgb": obs["rgb"], "fingers_uv": fingers, "axis_uv": axis}
-            phase = "regrasp at the station" if info["phase"] == "regrasp" else f"attempt {attempt}"
+            # Env steps, not attempts: a push is no attempt, and a set-down and its regrasp are one.
+            phase = "regrasp at the station" if info["phase"] == "regrasp" else f"step {step}"
             obs, _, terminated, truncated, info = env.step(action)
             agent.observe_outcome(info["outcome"])
-            frames.append(frame | {"title": f"{phase}: {kind} -> {info['outcome']}"})
-            attempt += info["outcome"] != "set_down"
+            frames.append(frame | {"title": f"{phase}: {label} -> {info['outcome']}"})
+            step += 1
             if terminated or truncated:
                 frames.append({"rgb": obs["rgb"], "title": f"end: {info['end_reason']}"})
                 break

@@ -25,6 +25,7 @@ def test_every_input_of_the_comparison_for_a_part():
     [
         (["--inputs", "state", "don:toolcap/nonsense"], "expected some of"),
         (["--inputs", "state", "--quick"], "not with --quick"),
+        (["--record-as", "descriptors"], "expected imitation or imitation-"),
     ],
 )
 def test_bad_inputs_are_refused_in_one_line_before_anything_runs(capsys, args, message):
@@ -45,3 +46,29 @@ def test_a_missing_demonstrations_file_is_one_line_without_a_traceback(tmp_path)
     assert done.returncode != 0
     err = done.stderr.strip()
     assert len(err.splitlines()) == 1 and "none.hdf5" in err and "no such file" in err, err
+
+
+def test_record_as_puts_the_comparison_in_its_own_section_and_figure_and_leaves_the_readme(monkeypatch, tmp_path):
+    class Result:  # what run_imitation returns, for the recording's routing only
+        wins = {"state": {50: 80}, "descriptors:toolcap/supervised-edge": {50: 60}}
+
+        def rates(self):
+            return {}
+
+        def table(self):
+            return "| input | N = 50 |"
+
+    recorded, readme, figures = [], [], []
+    monkeypatch.setattr(bench_imitation, "run_imitation", lambda *args, **kwargs: Result())
+    monkeypatch.setattr(
+        bench_imitation, "plot_success_against_demonstrations", lambda r, path, **k: figures.append(path)
+    )
+    monkeypatch.setattr(bench_imitation, "record_section", lambda name, title, body, after=None: recorded.append(
+        (name, title, body, after)))  # fmt: skip
+    monkeypatch.setattr(bench_imitation, "replace_block", lambda path, name, text: readme.append(name))
+    bench_imitation.main(["--parts", "comparison", "--inputs", "state", "descriptors:toolcap/supervised-edge",
+                          "--record-as", "imitation-descriptors", "--work", str(tmp_path), "--jobs", "1"])  # fmt: skip
+    ((name, title, body, after),) = recorded
+    assert (name, after) == ("imitation-descriptors", "imitation") and "descriptors:toolcap/supervised-edge" in title
+    assert figures == [bench_imitation.FIGURES / "imitation-descriptors.png"] and readme == []
+    assert "the section `imitation` has the others" in body and "20 points, NOT met" not in body

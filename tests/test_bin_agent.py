@@ -147,10 +147,11 @@ def test_a_standing_part_is_toppled_where_it_stands_before_the_station_is_used()
         x0, x1, y0, y1 = bin_inner_bounds()
         # A grasp where nothing lies (it fails) to observe the part standing.
         obs, _, _, _, info = env.step(np.array([x1 - 0.03, y1 - 0.03, TABLE_TOP_Z_M + 0.02, 0.0, 0.0], np.float32))
-        never = BinOracleAgent(env)  # the default: never topple
+        never = BinOracleAgent(env)
+        never.max_topples_per_part = 0
         assert int(never.act(obs, info)[4]) == 2  # straight to the station
-        agent = BinOracleAgent(env)
-        agent.max_topples_per_part = 1
+        agent = BinOracleAgent(env)  # the default: one topple per part
+        assert agent.max_topples_per_part == 1
         agent.reset()
         action = agent.act(obs, info)
         # A push at the top, short of its centre on the side away from the bin's middle, towards the middle.
