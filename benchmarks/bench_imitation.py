@@ -18,7 +18,7 @@
     python benchmarks/bench_imitation.py --parts comparison --demos-file WORK/demos_toolcap_lift.hdf5 \
         --other-demos-file WORK/demos_shaft_lift.hdf5     # the demonstrations an earlier --work WORK recorded
     python benchmarks/bench_imitation.py --parts comparison --inputs state descriptors:toolcap/supervised-edge \
-        --record-as imitation-descriptors                 # its own section and figure; "imitation" kept
+        --record-as imitation-descriptors                 # its own section, figure and README block
 
 The comparison clones and evaluates ``--jobs`` policies at once (default: one per core), each in its own process
 with one torch thread; each policy is seeded and its episodes fixed, so the figures do not depend on it.
@@ -37,7 +37,15 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _results import FIGURES, REPO_ROOT, OtherProcessLoad, record_section, replace_block, require_blocks  # noqa: E402
+from _results import (  # noqa: E402
+    FIGURES,
+    REPO_ROOT,
+    BlockMarkersError,
+    OtherProcessLoad,
+    record_section,
+    replace_block,
+    require_blocks,
+)
 
 import don_gym  # noqa: E402,F401  (registers the env ids)
 from don_gym.cli import positive_int  # noqa: E402
@@ -61,6 +69,18 @@ TARGET_POINTS = 10.0
 README = REPO_ROOT / "README.md"
 #: The README block each part writes (outside --quick).
 README_BLOCKS = {"comparison": "imitation", "cost": "imitation-cost"}
+
+
+def readme_block(section: str) -> str | None:
+    """The README block that the comparison recorded as ``section`` fills: the main one for ``imitation``, else
+    the block of the section's own name where the README has one (None: the README is left as it is)."""
+    if section == "imitation":
+        return README_BLOCKS["comparison"]
+    try:
+        require_blocks(README, [section])
+    except BlockMarkersError:
+        return None
+    return section
 
 
 def all_inputs(part: str) -> list[str]:
@@ -165,8 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--record-as", default="imitation", metavar="SECTION",
         help="record the comparison as this RESULTS.md section, with its figure benchmarks/figures/SECTION.png "
-        "(default: imitation, which the README shows; another name leaves the README and that section as they are: "
-        "for an input run on its own, beside state as its baseline)",
+        "(default: imitation; another name leaves that section as it is, for an input run on its own beside state as "
+        "its baseline); the README block of the same name is filled where the README has one",
     )  # fmt: skip
     parser.add_argument(
         "--jobs", type=positive_int, default=None, metavar="N",
@@ -212,8 +232,9 @@ def main(argv: list[str] | None = None) -> int:
                 title = "Behaviour cloning at equal demonstrations (bench_imitation)"
                 record_section(args.record_as, title if own else f"{title}: {', '.join(config.inputs)}", body,
                                after=None if own else "imitation")  # fmt: skip
-                if own:
-                    replace_block(README, README_BLOCKS["comparison"], body)
+                block = readme_block(args.record_as)
+                if block is not None:
+                    replace_block(README, block, body)
     return 0
 
 

@@ -48,7 +48,10 @@ def test_a_missing_demonstrations_file_is_one_line_without_a_traceback(tmp_path)
     assert len(err.splitlines()) == 1 and "none.hdf5" in err and "no such file" in err, err
 
 
-def test_record_as_puts_the_comparison_in_its_own_section_and_figure_and_leaves_the_readme(monkeypatch, tmp_path):
+@pytest.mark.parametrize("readme_has_block", [True, False])
+def test_record_as_puts_the_comparison_in_its_own_section_figure_and_readme_block(
+    monkeypatch, tmp_path, readme_has_block
+):
     class Result:  # what run_imitation returns, for the recording's routing only
         wins = {"state": {50: 80}, "descriptors:toolcap/supervised-edge": {50: 60}}
 
@@ -66,9 +69,14 @@ def test_record_as_puts_the_comparison_in_its_own_section_and_figure_and_leaves_
     monkeypatch.setattr(bench_imitation, "record_section", lambda name, title, body, after=None: recorded.append(
         (name, title, body, after)))  # fmt: skip
     monkeypatch.setattr(bench_imitation, "replace_block", lambda path, name, text: readme.append(name))
+    fake_readme = tmp_path / "README.md"
+    block = "<!-- begin imitation-descriptors -->\n<!-- end imitation-descriptors -->\n" if readme_has_block else ""
+    fake_readme.write_text("<!-- begin imitation -->\n<!-- end imitation -->\n" + block)
+    monkeypatch.setattr(bench_imitation, "README", fake_readme)
     bench_imitation.main(["--parts", "comparison", "--inputs", "state", "descriptors:toolcap/supervised-edge",
                           "--record-as", "imitation-descriptors", "--work", str(tmp_path), "--jobs", "1"])  # fmt: skip
     ((name, title, body, after),) = recorded
     assert (name, after) == ("imitation-descriptors", "imitation") and "descriptors:toolcap/supervised-edge" in title
-    assert figures == [bench_imitation.FIGURES / "imitation-descriptors.png"] and readme == []
+    assert figures == [bench_imitation.FIGURES / "imitation-descriptors.png"]
+    assert readme == (["imitation-descriptors"] if readme_has_block else [])  # never the main comparison's block
     assert "the section `imitation` has the others" in body and "20 points, NOT met" not in body
