@@ -141,10 +141,10 @@ REFINE_MAX_POINTS = 400
 #: blocked), the agent pushes the part away from the wall first (the env's "push" step), at most this many times
 #: in a row before it tries the grasp anyway. 0: never push.
 MAX_PUSHES_IN_A_ROW = 2
-#: With ``agent.max_topples_per_part`` > 0, a part standing on an end, when it is the preferred grasp, is first
-#: toppled where it stands (a push at its top: :func:`topple_standing`), which costs less motion than setting it
-#: down at the regrasp station and grasping it there; a standing part whose top lies within TOPPLE_TRIED_RADIUS_M
-#: (m) of that many earlier topples goes to the station. 0: never topple (every standing part goes to the station).
+#: A part standing on an end, when it is the preferred grasp, is first toppled where it stands (a push at its top:
+#: :func:`topple_standing`), which costs less motion than setting it down at the regrasp station and grasping it
+#: there; a standing part whose top lies within TOPPLE_TRIED_RADIUS_M (m) of this many earlier topples goes to the
+#: station (the agent's ``max_topples_per_part``). 0: never topple (every standing part goes to the station).
 MAX_TOPPLES_PER_PART = 1
 TOPPLE_TRIED_RADIUS_M = 0.03
 #: The topple presses this many of the part's radii short of its top's centre (on the side it is pushed from), so
@@ -630,10 +630,10 @@ def refine_axis_with_depth(
 
 @dataclass(frozen=True)
 class _DepthView:
-    """What the descriptor agent's searches need of one observation's depth, worked out once: the depth image
+    """What the agents need of one observation's depth, worked out once per ``act``: the depth image
     (H, W) float32 (m), the intrinsics, ``T_world_camera`` (4, 4), the point cloud (N, 3) of every pixel with depth
     (world, m), the median depth (m) and the candidate suppression window (pixels: a ring's diameter at the median
-    depth). The agents' searches and their grasp choice share one per observation."""
+    depth), shared by the descriptor agent's searches and the grasp choice."""
 
     depth_m: np.ndarray
     intrinsics: CameraIntrinsics

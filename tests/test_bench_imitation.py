@@ -79,4 +79,5 @@ def test_record_as_puts_the_comparison_in_its_own_section_figure_and_readme_bloc
     assert (name, after) == ("imitation-descriptors", "imitation") and "descriptors:toolcap/supervised-edge" in title
     assert figures == [bench_imitation.FIGURES / "imitation-descriptors.png"]
     assert readme == (["imitation-descriptors"] if readme_has_block else [])  # never the main comparison's block
-    assert "the section `imitation` has the others" in body and "20 points, NOT met" not in body
+    # The target line compares the supervised DON keypoints with the state: neither verdict without them.
+    assert "the section `imitation` has the others" in body and "Target:" not in body
