@@ -17,8 +17,8 @@
     python benchmarks/bench_imitation.py --quick          # the CLI's --quick comparison, a short cost; no record
     python benchmarks/bench_imitation.py --parts comparison --demos-file WORK/demos_toolcap_lift.hdf5 \
         --other-demos-file WORK/demos_shaft_lift.hdf5     # the demonstrations an earlier --work WORK recorded
-    python benchmarks/bench_imitation.py --parts comparison --inputs state descriptors:toolcap/supervised-edge \
-        --record-as imitation-descriptors                 # its own section, figure and README block
+    python benchmarks/bench_imitation.py --parts comparison --inputs state rgbd descriptors:toolcap/supervised-edge \
+        --record-as imitation-images                      # its own section, figure and README block
 
 The comparison clones and evaluates ``--jobs`` policies at once (default: one per core), each in its own process
 with one torch thread; each policy is seeded and its episodes fixed, so the figures do not depend on it.
