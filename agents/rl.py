@@ -360,6 +360,7 @@ def _resumed_state(run_path: Path, config: dict[str, Any]) -> tuple[LearningCurv
     saved = json.loads((run_path / RUN_FILES["config"]).read_text())
     # A run saved before demonstrations existed had none.
     saved.setdefault("demonstrations", {"episodes": 0, "bc_weight": 0.0})
+    saved["demonstrations"].setdefault("demo_fraction", 0.0)
     differs = [k for k in ("algorithm", "n_envs", "env_kwargs", "demonstrations") if saved.get(k) != config[k]]
     if differs:
         raise DonGymError(f"resume: {str(run_path)!r} was a run with other {differs}; start a new run_dir")
@@ -383,7 +384,7 @@ def _run_config(
     env_kwargs: dict[str, Any],
     algo_kwargs: dict[str, Any],
     seed: int,
-    demonstrations: tuple[int, float],
+    demonstrations: tuple[int, float, float],
 ) -> dict[str, Any]:
     """A run's ``config.json``: its arguments, seeds and versions (stable-baselines3's added by the caller)."""
     return {
@@ -394,7 +395,11 @@ def _run_config(
         "env_kwargs": _jsonable(env_kwargs),
         "algo_kwargs": _jsonable({k: v for k, v in algo_kwargs.items() if k != "replay_buffer_class"}),
         "seeds": {"algorithm": int(seed), "envs_first_reset": [int(seed) + i for i in range(int(n_envs))]},
-        "demonstrations": {"episodes": int(demonstrations[0]), "bc_weight": float(demonstrations[1])},
+        "demonstrations": {
+            "episodes": int(demonstrations[0]),
+            "bc_weight": float(demonstrations[1]),
+            "demo_fraction": float(demonstrations[2]),
+        },
         "versions": {"python": platform.python_version()},
     }
 
@@ -415,6 +420,7 @@ def train(
     don_device: str | None = None,
     demonstrations: int = 0,
     bc_weight: float = 0.0,
+    demo_fraction: float = 0.0,
 ) -> RLTrainResult:
     """Train a baseline of :data:`ALGORITHMS` for ``total_timesteps`` env steps.
 
@@ -431,7 +437,9 @@ def train(
     saved model and buffer but does not repeat the uninterrupted run bit for bit (the envs restart).
 
     ``demonstrations``, ``bc_weight`` (SAC on a goal env): expert episodes in the replay buffer and a Q-filtered
-    behaviour-cloning step on them (:func:`~don_gym.agents.rl_demos.use_demonstrations`).
+    behaviour-cloning step on them (:func:`~don_gym.agents.rl_demos.use_demonstrations`); ``demo_fraction`` > 0:
+    that share of every batch drawn from the demonstrations
+    (:class:`~don_gym.agents.rl_buffer.DemonstrationHerReplayBuffer`), instead of a uniform draw over the buffer.
     """
     if algorithm not in ALGORITHMS:
         raise DonGymError(f"algorithm={algorithm!r} is unknown; expected one of {list(ALGORITHMS)}")
@@ -441,7 +449,7 @@ def train(
     if resume and run_dir is None:
         raise DonGymError("resume=True needs the run_dir of the run to resume")
     env_kwargs = dict(env_kwargs or {})
-    check_demonstration_settings(demonstrations, bc_weight, algorithm, env_kwargs.get("goal"))
+    check_demonstration_settings(demonstrations, bc_weight, algorithm, env_kwargs.get("goal"), demo_fraction)
     sb3 = require_sb3()
     class_name, policy, kwargs = _algorithm_setup(algorithm, env_kwargs, algo_kwargs)
     algo_class = getattr(sb3, class_name)
@@ -449,10 +457,16 @@ def train(
         from stable_baselines3 import HerReplayBuffer
 
         kwargs["replay_buffer_class"] = HerReplayBuffer
+        if demo_fraction:
+            from don_gym.agents.rl_buffer import DemonstrationHerReplayBuffer
+
+            kwargs["replay_buffer_class"] = DemonstrationHerReplayBuffer
+            kwargs["replay_buffer_kwargs"] = {**kwargs["replay_buffer_kwargs"], "demo_fraction": float(demo_fraction)}
         kwargs["policy_kwargs"]["features_extractor_class"] = _policy_inputs_extractor()
     run_path = Path(run_dir) if run_dir is not None else None
     config = _run_config(
-        algorithm, total_timesteps, n_envs, vectorize, env_kwargs, kwargs, seed, (demonstrations, bc_weight)
+        algorithm, total_timesteps, n_envs, vectorize, env_kwargs, kwargs, seed,
+        (demonstrations, bc_weight, demo_fraction),
     )  # fmt: skip
     config["versions"]["stable_baselines3"] = sb3.__version__
     curve, wall_s_before = LearningCurve(), 0.0

@@ -69,9 +69,12 @@ class ExpertEpisodes:
             return cls(observations, data["actions"], [bool(s) for s in data["successes"]])
 
 
-def check_demonstration_settings(demonstrations: Any, bc_weight: Any, algorithm: str, goal: str | None) -> None:
-    """Refuse ``demonstrations`` (episodes, >= 0) or ``bc_weight`` (>= 0) that are not numbers of the right kind,
-    and either for a run other than SAC on a goal env (the expert acts in ``control="ee"``, lift or place)."""
+def check_demonstration_settings(
+    demonstrations: Any, bc_weight: Any, algorithm: str, goal: str | None, demo_fraction: Any = 0.0
+) -> None:
+    """Refuse ``demonstrations`` (episodes, >= 0), ``bc_weight`` (>= 0) or ``demo_fraction`` (in [0, 1]) that are
+    not numbers of the right kind, and any of them for a run other than SAC on a goal env (the expert acts in
+    ``control="ee"``, lift or place)."""
     if isinstance(demonstrations, bool) or not isinstance(demonstrations, (int, np.integer)) or demonstrations < 0:
         raise DonGymError(f"demonstrations={demonstrations!r}: expected a number of expert episodes >= 0")
     if (
@@ -88,6 +91,14 @@ def check_demonstration_settings(demonstrations: Any, bc_weight: Any, algorithm:
         )
     if bc_weight and not demonstrations:
         raise DonGymError(f"bc_weight={bc_weight!r} needs demonstrations > 0 to imitate")
+    if (
+        isinstance(demo_fraction, bool)
+        or not isinstance(demo_fraction, (int, float))
+        or not 0.0 <= float(demo_fraction) <= 1.0
+    ):
+        raise DonGymError(f"demo_fraction={demo_fraction!r}: expected a share of each batch in [0, 1]")
+    if demo_fraction and not demonstrations:
+        raise DonGymError(f"demo_fraction={demo_fraction!r} needs demonstrations > 0 to sample from")
 
 
 def add_expert_episodes(model: Any, env_kwargs: dict[str, Any], episodes: int, seed: int) -> ExpertEpisodes:
@@ -129,6 +140,9 @@ def add_expert_episodes(model: Any, env_kwargs: dict[str, Any], episodes: int, s
                 # The other envs' episodes still running are cut here on purpose.
                 warnings.filterwarnings("ignore", message="The last trajectory in the replay buffer")
                 truncate()
+        if hasattr(model.replay_buffer, "demo_rows"):
+            # A DemonstrationHerReplayBuffer: its batches draw a share from these rows.
+            model.replay_buffer.demo_rows = int(model.replay_buffer.pos)
     finally:
         vec_env.close()
     return ExpertEpisodes(

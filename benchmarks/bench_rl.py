@@ -56,6 +56,7 @@ With each keypoint's last seen place and age (``--sac-memory``) and the DON on a
 Expert demonstrations (``--sac-demos N``): each SAC run's replay buffer starts with N episodes of the privileged
 ``EndEffectorExpert`` from the task's start, stepped in the run's own observation pipeline (``demonstrations.npz``
 in the run's directory); ``--sac-bc W`` adds a Q-filtered behaviour-cloning step on them (``agents/rl_demos.py``);
+``--sac-demo-fraction F`` draws that share of every batch from them (``agents/rl_buffer.py``);
 ``--sac-updates-per-step K`` takes K gradient steps per env step (more learning from the same samples);
 ``--section`` names the RESULTS.md section so such a run does not replace ``rl-sac-custom``::
 
@@ -488,6 +489,7 @@ def sac_runs(args: argparse.Namespace, keypoint_model: str) -> list[TrainingRun]
                 "vectorize": args.vectorize if (source == "don" and args.sac_envs > 1) else None,
                 "demonstrations": args.sac_demos,
                 "bc_weight": args.sac_bc,
+                "demo_fraction": args.sac_demo_fraction,
             },
         )
         for source in SAC_SOURCES
@@ -559,6 +561,7 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         f"; {args.sac_demos} episodes of the privileged expert (`EndEffectorExpert`, from the task's start) in each "
         "replay buffer before learning"
         + (f", with a Q-filtered behaviour-cloning step of weight {args.sac_bc:g} on them" if args.sac_bc else "")
+        + (f", {args.sac_demo_fraction:.0%} of every batch from them" if args.sac_demo_fraction else "")
         if args.sac_demos
         else ""
     )
@@ -651,7 +654,7 @@ PART_SETTINGS = {
     "sac": (
         "sac_goal", "sac_envs", "sac_steps", "sac_don_steps", "sac_max_steps", "sac_learning_starts",
         "sac_eval_episodes", "sac_hand_starts", "sac_memory", "sac_window", "vectorize", "sac_demos", "sac_bc",
-        "sac_gamma", "sac_updates_per_step",
+        "sac_demo_fraction", "sac_gamma", "sac_updates_per_step",
     ),
 }  # fmt: skip
 COMMON_SETTINGS = ("keypoint_model", "sensor", "seed", "image_size", "train_device")
@@ -756,6 +759,11 @@ def _parser() -> argparse.ArgumentParser:
         "kept where the critic prefers the expert's action (Q-filter; default 0: none)",
     )  # fmt: skip
     parser.add_argument(
+        "--sac-demo-fraction", type=float, default=0.0, metavar="SHARE",
+        help="with --sac-demos: this share of every batch drawn from the demonstrations (RLPD's symmetric sampling "
+        "at 0.5; default 0: a uniform draw over the whole buffer)",
+    )  # fmt: skip
+    parser.add_argument(
         "--section", default=None, metavar="KEY",
         help="record into the RESULTS.md section KEY instead of rl-<part> / rl-<part>-custom (one part only)",
     )  # fmt: skip
@@ -778,9 +786,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.section is not None and (len(parts) != 1 or not args.custom_parts):
         parser.error(f"--section {args.section!r}: names the section of one part run with other settings (--only)")
     try:  # the check rl.train makes, before any part runs
-        check_demonstration_settings(args.sac_demos, args.sac_bc, "sac", args.sac_goal)
+        check_demonstration_settings(args.sac_demos, args.sac_bc, "sac", args.sac_goal, args.sac_demo_fraction)
     except DonGymError as exc:
-        parser.error(f"--sac-demos {args.sac_demos} --sac-bc {args.sac_bc}: {exc}")
+        parser.error(
+            f"--sac-demos {args.sac_demos} --sac-bc {args.sac_bc} --sac-demo-fraction {args.sac_demo_fraction}: {exc}"
+        )
     if args.quick:
         args.throughput_envs, args.throughput_steps = [1, 2], 2
         args.ppo_envs, args.ppo_rollout, args.ppo_steps, args.ppo_eval_episodes = 1, 8, 8, 2

@@ -328,7 +328,7 @@ def test_expert_demonstrations_seed_the_buffer_and_behaviour_cloning_pulls_the_a
     errors = {name: imitation_error(run.model) for name, run in runs.items()}
     assert errors["bc"] < 0.5 * errors["plain"]
     config = json.loads((tmp_path / "bc" / "config.json").read_text())
-    assert config["demonstrations"] == {"episodes": 2, "bc_weight": 1.0}
+    assert config["demonstrations"] == {"episodes": 2, "bc_weight": 1.0, "demo_fraction": 0.0}
     resumed = rl.train("sac", 210, seed=0, env_kwargs=env_kwargs, algo_kwargs=algo_kwargs, progress=False,
                        run_dir=tmp_path / "bc", resume=True, demonstrations=2, bc_weight=1.0)  # fmt: skip
     assert resumed.model.num_timesteps == 210
@@ -338,11 +338,41 @@ def test_expert_demonstrations_seed_the_buffer_and_behaviour_cloning_pulls_the_a
         ({"demonstrations": -1}, "demonstrations=-1"),
         ({"demonstrations": 2, "bc_weight": float("nan")}, "bc_weight=nan"),
         ({"bc_weight": 1.0}, "needs demonstrations"),
+        ({"demonstrations": 2, "demo_fraction": 1.5}, "demo_fraction=1.5: expected a share"),
+        ({"demo_fraction": 0.5}, "demo_fraction=0.5 needs demonstrations"),
     ):
         with pytest.raises(DonGymError, match=match):
             rl.train("sac", 10, env_kwargs=env_kwargs, progress=False, **bad)
     with pytest.raises(DonGymError, match="algorithm='ppo'"):
         rl.train("ppo", 10, env_kwargs={"keypoints": "true"}, progress=False, demonstrations=2)
+
+
+def test_demo_fraction_draws_that_share_of_each_batch_from_the_demonstrations(tmp_path: Path) -> None:
+    from don_gym.agents.rl_buffer import DemonstrationHerReplayBuffer
+
+    env_kwargs = {"keypoints": "true", "goal": "lift", "max_steps": 10}
+    algo_kwargs = {
+        "learning_starts": 20, "batch_size": 16, "buffer_size": 1000, "policy_kwargs": {"net_arch": [16, 16]}
+    }  # fmt: skip
+    run = rl.train("sac", 60, seed=0, env_kwargs=env_kwargs, algo_kwargs=algo_kwargs, progress=False,
+                   run_dir=tmp_path / "run", demonstrations=2, demo_fraction=0.25)  # fmt: skip
+    buffer = run.model.replay_buffer
+    demos = ExpertEpisodes.load(tmp_path / "run" / rl.RUN_FILES["demonstrations"])
+    assert isinstance(buffer, DemonstrationHerReplayBuffer) and buffer.demo_rows == len(demos.actions)
+    assert buffer.pos == buffer.demo_rows + 60
+    expert_actions = {tuple(a) for a in buffer.actions[: buffer.demo_rows, 0]}
+
+    def from_demos(batch_size: int) -> int:
+        samples = buffer.sample(batch_size)
+        return sum(tuple(a) in expert_actions for a in samples.actions.numpy())
+
+    # A quarter of every batch from the demonstrations, whatever their share of the buffer (2 short episodes
+    # of the expert's against 60 steps of the run's own).
+    assert [from_demos(64) for _ in range(5)] == [16] * 5
+    buffer.demo_fraction = 0.5
+    assert from_demos(64) == 32
+    config = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert config["demonstrations"]["demo_fraction"] == 0.25
 
 
 # ------------------------------------------------------------------------------ descriptor images

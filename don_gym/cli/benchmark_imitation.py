@@ -7,19 +7,19 @@ import argparse
 from don_gym.cli import positive_int
 
 DESCRIPTION = """\
-imitation: behaviour cloning from N demonstrations of the Markov end-effector expert (privileged state,
-control="ee", run with DART noise on its motion) for each input, the same policy class for all (an MLP over the
-last 2 steps' features: the robot's TCP pose, wrist angle and finger opening plus the input's; images through a
-convolutional encoder with a spatial softmax first), evaluated on held-out episodes (reset(seed=100000 + i);
+imitation: behaviour cloning from N demonstrations of the Markov end-effector expert (privileged state, control="ee",
+run with DART noise on its motion) for each input, the same policy class for all (an MLP over the last 2 steps'
+features: the robot's TCP pose, wrist angle and finger opening plus the input's; images, each channel standardised,
+through a convolutional encoder with a spatial softmax first), evaluated on held-out episodes (reset(seed=100000 + i);
 --split dev: the development episodes, reset(seed=50000 + i)) with 95% Wilson intervals. Inputs: state (the part's
 true pose with its grasp point and axis, the upper bound), true (its exact keypoints), simulated:NETWORK (the
 network's noise model, field of view and depth range), don:NETWORK (the network's keypoints on the wrist camera at
 640x480, in a 192-pixel window), rgbd (wrist RGB-D at 128x96, end-to-end), descriptors:NETWORK (the network's
-descriptor image of the wrist camera at 640x480, area-averaged to 128x96, through the same encoder as rgbd).
-Keypoint inputs carry each keypoint's last seen place and age (KeypointMemory). Generalisation columns at one N
-(--generalisation-n): the same policies with background="random", and the recipe repeated on the other built-in
-part (the shaft for the toolcap: its demonstrations, its networks). The demonstrations are recorded once (the
-largest N) into --out (robomimic's HDF5 layout, docs/demonstrations.md), or taken from --demos-file.
+descriptor image of the wrist camera at 640x480, area-averaged to 128x96, through the same encoder as rgbd). Keypoint
+inputs carry each keypoint's last seen place and age (KeypointMemory). Generalisation columns at one N
+(--generalisation-n): the same policies with background="random", and the recipe repeated on the other built-in part
+(the shaft for the toolcap: its demonstrations, its networks). The demonstrations are recorded once (the largest N)
+into --out (robomimic's HDF5 layout, docs/demonstrations.md), or taken from --demos-file.
 """
 
 EPILOG = """\
