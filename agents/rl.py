@@ -352,6 +352,20 @@ def _algorithm_setup(algorithm: str, env_kwargs: dict[str, Any], algo_kwargs: di
     return ("PPO" if algorithm == "ppo" else "SAC"), "MlpPolicy", kwargs
 
 
+def _use_her(kwargs: dict[str, Any], demo_fraction: float) -> None:
+    """Set SAC's ``kwargs`` for a goal env: HER's replay buffer (with ``demo_fraction`` > 0, the one that draws that
+    share of each batch from the demonstrations) and the extractor that hides ``achieved_goal`` from the policy."""
+    from stable_baselines3 import HerReplayBuffer
+
+    kwargs["replay_buffer_class"] = HerReplayBuffer
+    if demo_fraction:
+        from don_gym.agents.rl_buffer import DemonstrationHerReplayBuffer
+
+        kwargs["replay_buffer_class"] = DemonstrationHerReplayBuffer
+        kwargs["replay_buffer_kwargs"] = {**kwargs["replay_buffer_kwargs"], "demo_fraction": float(demo_fraction)}
+    kwargs["policy_kwargs"]["features_extractor_class"] = _policy_inputs_extractor()
+
+
 def _resumed_state(run_path: Path, config: dict[str, Any]) -> tuple[LearningCurve, float]:
     """The learning curve and training time (s) of the run ``train(resume=True)`` continues, checked to be a
     run of the same algorithm, envs and env settings."""
@@ -454,15 +468,7 @@ def train(
     class_name, policy, kwargs = _algorithm_setup(algorithm, env_kwargs, algo_kwargs)
     algo_class = getattr(sb3, class_name)
     if policy == "MultiInputPolicy" and class_name == "SAC":
-        from stable_baselines3 import HerReplayBuffer
-
-        kwargs["replay_buffer_class"] = HerReplayBuffer
-        if demo_fraction:
-            from don_gym.agents.rl_buffer import DemonstrationHerReplayBuffer
-
-            kwargs["replay_buffer_class"] = DemonstrationHerReplayBuffer
-            kwargs["replay_buffer_kwargs"] = {**kwargs["replay_buffer_kwargs"], "demo_fraction": float(demo_fraction)}
-        kwargs["policy_kwargs"]["features_extractor_class"] = _policy_inputs_extractor()
+        _use_her(kwargs, demo_fraction)
     run_path = Path(run_dir) if run_dir is not None else None
     config = _run_config(
         algorithm, total_timesteps, n_envs, vectorize, env_kwargs, kwargs, seed,
