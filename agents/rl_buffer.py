@@ -34,10 +34,12 @@ class DemonstrationHerReplayBuffer(HerReplayBuffer):
         self.demo_rows = 0
 
     def _sample_rows(self, batch_size: int, rows: slice, env: Any) -> DictReplayBufferSamples:
-        """HER's own sampling restricted to the buffer's ``rows``: the others are hidden (episode length 0, which
-        HER reads as "no whole episode here") for the call."""
+        """HER's own sampling restricted to the buffer's ``rows`` (below :attr:`pos`, the buffer not full): the
+        others are hidden (episode length 0, which HER reads as "no whole episode here") for the call. The
+        stand-in ends at :attr:`pos`, past which nothing is written yet, so a gradient step does not copy the
+        whole preallocated buffer's lengths."""
         lengths = self.ep_length
-        hidden = np.zeros_like(lengths)
+        hidden = np.zeros_like(lengths[: self.pos])
         hidden[rows] = lengths[rows]
         self.ep_length = hidden
         try:
@@ -47,7 +49,7 @@ class DemonstrationHerReplayBuffer(HerReplayBuffer):
 
     def sample(self, batch_size: int, env: Any = None) -> DictReplayBufferSamples:  # type: ignore[override]
         demos = slice(0, self.demo_rows)
-        own = slice(self.demo_rows, self.buffer_size)
+        own = slice(self.demo_rows, self.pos)
         from_demos = int(round(self.demo_fraction * batch_size))
         mixed = (
             self.demo_rows > 0

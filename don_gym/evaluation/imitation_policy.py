@@ -305,13 +305,12 @@ def train_policy(
     x = torch.from_numpy(np.concatenate(vectors))
     y = torch.from_numpy(np.concatenate(demos.actions).astype(np.float32))
     pictures = torch.from_numpy(np.concatenate(frames)) if frames else None
-    if pictures is not None:
-        channel_mean, channel_std = image_statistics(frames)
     policy = HistoryPolicy(x.shape[1], HISTORY, image_channels=0 if pictures is None else pictures.shape[1])
     stacked = x[index].flatten(1)
     policy.mean.copy_(stacked.mean(dim=0))
     policy.std.copy_(stacked.std(dim=0).clamp_min(1e-3))
     if pictures is not None:
+        channel_mean, channel_std = image_statistics(frames)
         policy.image_mean.copy_(torch.from_numpy(channel_mean))
         policy.image_std.copy_(torch.from_numpy(channel_std).clamp_min(1e-3))
     optimiser = torch.optim.Adam(policy.parameters(), lr=1e-3)
