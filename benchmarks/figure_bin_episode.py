@@ -2,7 +2,7 @@
 is about to make drawn on the wrist camera's image (the finger pads and the line they close along, the believed
 +axis), its kind and its outcome below. Writes ``benchmarks/figures/bin_episode.png`` for docs/bin.md; measures nothing.
 
-    python benchmarks/figure_bin_episode.py                 # the oracle on development pile 9 (topples, a regrasp)
+    python benchmarks/figure_bin_episode.py                 # the oracle on development pile 9 (topples)
     python benchmarks/figure_bin_episode.py --pile 3 --method oracle-descriptors --out /tmp/episode.png
 """
 

@@ -38,7 +38,7 @@ from don_gym.sim.env import (
     is_integer,
 )
 from don_gym.sim.robot import FINGER_JOINTS, Panda, wrap_angle
-from don_gym.sim.script import FREE_SPEED_M_S, STEP_KINDS, GraspPlaceScript, move_duration_s
+from don_gym.sim.script import CONTACT_ZONE_M, FREE_SPEED_M_S, STEP_KINDS, GraspPlaceScript, move_duration_s
 from don_gym.sim.sensor import sample_calibration_error
 from don_gym.sim.task import OBSERVATION_YAW_RAD, observation_camera_position
 
@@ -487,7 +487,7 @@ class BinPickEnv(PickPlaceEnv):
         if aimed is not None:
             self.task.set_focus(aimed)
         opening = grasp_opening_m(self.model, kind, action[:2], float(action[3]))
-        script = GraspPlaceScript(self.sim, self.robot, self.task, open_width_m=opening)
+        script = GraspPlaceScript(self.sim, self.robot, self.task, open_width_m=opening, slow_lift_m=CONTACT_ZONE_M)
         set_down = self._set_down_spec() if kind == "standing" and self.station_xy_m is not None else None
         trace = script.run(action[:3], float(action[3]), kind, set_down=set_down)
         judgement = self.task.judge(trace.lifted, trace.left_workspace, self.robot.contacts(self.task))
@@ -540,7 +540,7 @@ class BinPickEnv(PickPlaceEnv):
         instance = self._regrasp_instance
         self.task.set_focus(instance)
         opening = grasp_opening_m(self.model, kind, action[:2], float(action[3]))
-        script = GraspPlaceScript(self.sim, self.robot, self.task, open_width_m=opening)
+        script = GraspPlaceScript(self.sim, self.robot, self.task, open_width_m=opening, slow_lift_m=CONTACT_ZONE_M)
         trace = script.run(action[:3], float(action[3]), kind)
         judgement = self.task.judge(trace.lifted, trace.left_workspace, self.robot.contacts(self.task))
         # The target was lifted out of the bin in this attempt: a regrasp that lifts nothing has not placed it.

@@ -37,6 +37,9 @@ APPROACH_SPEED_M_S = 0.15
 LIFT_SPEED_M_S = 0.10
 PLACE_SPEED_M_S = 0.05
 RETRACT_SPEED_M_S = 0.2
+#: The slow speeds near contact apply within this height (m) of where the part lies or lands: a held part reaches
+#: at most 4 cm below the TCP, so this leaves 2 cm to spare.
+CONTACT_ZONE_M = 0.06
 #: Lift (m) before opening when the fingertips touch the cradle's walls.
 FINGER_CLEARANCE_M = 0.004
 #: The release counts as failed while a finger still touches the part after opening (stalled short
@@ -107,9 +110,10 @@ class GraspPlaceScript:
 
     1. moves above the grasp point with the fingers across the believed axis (top-down),
     2. descends, closes the gripper slowly with a limited force and waits for the fingers to stop,
-    3. lifts slowly, carries the part above the cradle while turning the hand so that the
-       *believed* +axis ends along the cradle's target direction, the hand offset along it by the
-       grasp point's known axial position so that the part's centre of mass comes over the groove's centre,
+    3. lifts slowly (with ``slow_lift_m``, as the bin env asks, only out of the pile, then fast), carries
+       the part above the cradle while turning the hand so that the *believed* +axis ends along the cradle's
+       target direction, the hand offset along it by the grasp point's known axial position so that the part's
+       centre of mass comes over the groove's centre,
     4. lowers it with a guarded move (stops at the first contact of the part or a fingertip
        with the cradle, as a force-guarded industrial place would), lifts 4 mm if a fingertip
        rests on a groove wall, opens the gripper (squeezing and opening again if the fingers
@@ -121,13 +125,24 @@ class GraspPlaceScript:
     the hand yaw is parametrised by the wrist angle (joint 7) so the arm never winds past its limits.
     """
 
-    def __init__(self, sim: Bullet, robot: Panda, task: PickPlaceTask, open_width_m: float = MAX_WIDTH_M):
+    def __init__(
+        self,
+        sim: Bullet,
+        robot: Panda,
+        task: PickPlaceTask,
+        open_width_m: float = MAX_WIDTH_M,
+        slow_lift_m: float | None = None,
+    ):
         self.sim = sim
         self.robot = robot
         self.task = task
         #: Finger opening (m) on the way down to the grasp: fully open alone on a table; in a pile, just wider
         #: than the part, so that the fingers find room between its neighbours.
         self.open_width_m = float(open_width_m)
+        #: How far (m) above the grasp the lift goes at :data:`LIFT_SPEED_M_S` before the free-space speed takes
+        #: over up to the carry height (as the place comes down: fast, then slow within :data:`CONTACT_ZONE_M`).
+        #: None: the whole lift slow, the single-part env's program (its recorded figures were measured so).
+        self.slow_lift_m = None if slow_lift_m is None else float(slow_lift_m)
         self.base_xy = robot.base_position[:2]
         self.trace = ScriptTrace()
         self._tcp = robot.tcp_pose()[:3, 3].copy()
@@ -300,7 +315,12 @@ class GraspPlaceScript:
         self._grasp_phases(grasp, wrist_grasp, "close")
         trace.phases.append("lift")
         lift_to = np.array([grasp[0], grasp[1], TABLE_TOP_Z_M + CARRY_HEIGHT_M])
-        self.move(lift_to, wrist_grasp, LIFT_SPEED_M_S)
+        if self.slow_lift_m is not None and self._tcp[2] + self.slow_lift_m < lift_to[2]:
+            clear = np.array([grasp[0], grasp[1], self._tcp[2] + self.slow_lift_m])
+            self.move(clear, wrist_grasp, LIFT_SPEED_M_S, settle_s=0.0)
+            self.move(lift_to, wrist_grasp, FREE_SPEED_M_S)
+        else:
+            self.move(lift_to, wrist_grasp, LIFT_SPEED_M_S)
         trace.lifted = task.is_held(robot.contacts(task))
         if not trace.lifted:
             # Nothing in the hand: a real program would stop here too.
@@ -318,7 +338,7 @@ class GraspPlaceScript:
         # Quickly to where no part held at most 4 cm below the TCP can touch, then a slow
         # guarded move: stop at the first contact of the part or a finger with the cradle.
         apex_z = TABLE_TOP_Z_M + CRADLE_APEX_HEIGHT_M
-        self.move(np.array([*self.place_xy, apex_z + 0.06]), wrist_place, APPROACH_SPEED_M_S, settle_s=0.0)
+        self.move(np.array([*self.place_xy, apex_z + CONTACT_ZONE_M]), wrist_place, APPROACH_SPEED_M_S, settle_s=0.0)
         lowest = np.array([*self.place_xy, apex_z + MIN_TCP_HEIGHT_M])
 
         def touching_cradle() -> bool:
