@@ -27,7 +27,8 @@ process each, one torch thread each: the same runs as one after the other; by de
 CPUs), then each part evaluates. Figures go to ``benchmarks/figures/``, results to one section of
 ``benchmarks/RESULTS.md`` per part that ran (``rl-throughput``, ``rl-ppo``, ``rl-sac``; not with
 ``--quick``); a part run with settings other than the defaults (e.g. the longer recipes below) records into
-``rl-<part>-custom`` and ``<figure>_custom.png`` instead, beside the default run's figures.
+``rl-<part>-custom`` and ``<figure>_custom.png`` instead (with ``--section KEY``: that section and
+``<figure>_<KEY>.png``), beside the default run's figures.
 
     python benchmarks/bench_rl.py                      # full CPU run, all parts (~1.5 h on 2 cores)
     python benchmarks/bench_rl.py --only sac --resume  # one part, continuing its runs in runs/rl
@@ -267,8 +268,12 @@ def train_runs(args: argparse.Namespace, runs: list[TrainingRun], jobs: int) -> 
 
 def _figure(args: argparse.Namespace, part: str, stem: str) -> Path:
     """Where a part's figure goes: ``<stem>_custom.png`` when the part runs with other settings (its RESULTS
-    section is ``rl-<part>-custom``), so that it never overwrites the default run's figure."""
-    return args.figures / f"{stem}{'_custom' if part in getattr(args, 'custom_parts', ()) else ''}.png"
+    section is ``rl-<part>-custom``), ``<stem>_<section>.png`` with ``--section``, so that it never overwrites
+    another run's figure."""
+    if part not in getattr(args, "custom_parts", ()):
+        return args.figures / f"{stem}.png"
+    section = getattr(args, "section", None)
+    return args.figures / f"{stem}_{section.replace('-', '_') if section else 'custom'}.png"
 
 
 def _curve_entry(label: str, curve: rl.LearningCurve, window: int) -> tuple[str, Any]:

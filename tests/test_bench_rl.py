@@ -72,6 +72,14 @@ def test_runs_with_other_settings_record_beside_the_default_ones(tmp_path: Path)
     assert bench_rl._custom_settings(parser, longer, "ppo") == []
     other_part = parser.parse_args(["--keypoint-model", "oracle"])
     assert bench_rl._custom_settings(parser, other_part, "throughput") == ["keypoint_model"]
+    # Each record keeps its own figure: the default run's, a custom run's, and a named section's.
+    figures = set()
+    for argv in ([], ["--sac-steps", "80000"], ["--sac-steps", "80000", "--section", "rl-sac-demos"]):
+        args = parser.parse_args(argv)
+        args.figures = tmp_path
+        args.custom_parts = {part for part in bench_rl.PARTS if bench_rl._custom_settings(parser, args, part)}
+        figures.add(bench_rl._figure(args, "sac", "rl_sac_her_lift").name)
+    assert figures == {"rl_sac_her_lift.png", "rl_sac_her_lift_custom.png", "rl_sac_her_lift_rl_sac_demos.png"}
 
 
 def test_sac_memory_and_window_reach_every_sac_run_and_record_apart(tmp_path: Path) -> None:
