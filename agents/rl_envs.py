@@ -92,6 +92,7 @@ def make_sac_env(
     hand_starts: dict[str, float] | None = None,
     window_px: int | None = None,
     memory: bool = False,
+    look_first: bool = False,
 ) -> gym.Env:
     """The SAC baseline's env: ``control="ee"``, keypoints of every wrist-camera frame (relative to the
     TCP) plus the robot state as one flat vector; the keypoints move with the camera and vanish when
@@ -102,17 +103,19 @@ def make_sac_env(
     ``hand_starts``: shares of episodes that start with the hand at or on the part
     (:class:`~don_gym.wrappers.HandStarts`; for training). ``window_px``: the DON sees a window of that many pixels
     around the part (:func:`~don_gym.wrappers.goals.make_keypoint_env`). ``memory``: the keypoints' last seen places
-    and ages too (:class:`~don_gym.wrappers.KeypointMemory`)."""
+    and ages too (:class:`~don_gym.wrappers.KeypointMemory`). ``look_first``: each hand start comes after a look
+    from the task's start, so that the keypoints' memory holds the part as on the task's own way down
+    (:class:`~don_gym.wrappers.HandStarts`)."""
     if goal is not None and goal not in GOALS:
         raise DonGymError(f"goal={goal!r} is unknown; expected None or one of {list(GOALS)}")
     if goal is not None:
         return make_goal_env(
             object, goal, keypoints, keypoint_model, noise, image_size, max_steps, hand_starts, keypoint_kwargs,
-            sensor=sensor, reward_type=reward_type, window_px=window_px, memory=memory,
+            sensor=sensor, reward_type=reward_type, window_px=window_px, memory=memory, look_first=look_first,
         )  # fmt: skip
     env = make_keypoint_env(
         object, keypoints, keypoint_model, noise, image_size, hand_starts, keypoint_kwargs, window_px, memory,
-        control="ee", sensor=sensor, reward_type=reward_type, max_steps=max_steps,
+        look_first, control="ee", sensor=sensor, reward_type=reward_type, max_steps=max_steps,
     )  # fmt: skip
     return _sac_head(env, goal)
 
@@ -265,6 +268,11 @@ def make_batched_sac_vec_env(
         raise DonGymError(
             f"window_px={kwargs['window_px']!r}: batched envs see whole frames (each window follows its own part); "
             "use vectorize='dummy' or 'subproc' for windowed observations"
+        )
+    if kwargs.get("look_first") and kwargs.get("hand_starts"):
+        raise DonGymError(
+            "look_first=True: batched envs find the keypoints outside their sub-envs, so a hand start cannot look "
+            "first; use vectorize='dummy' or 'subproc'"
         )
     goal = kwargs.get("goal")
     if goal is not None and goal not in GOALS:

@@ -66,7 +66,16 @@ in the run's directory); ``--sac-bc W`` adds a Q-filtered behaviour-cloning step
         --out runs/rl-demos --jobs 2 --section rl-sac-demos
 
 (about 76 min with ``--jobs 2``; RESULTS "rl-sac-demos": from the task's start 86% with true keypoints, 4% with
-the DON's, 0% with simulated ones.)
+the DON's, 0% with simulated ones.) At those hand starts the camera had never seen the part (too near), so the
+keypoints' memory was empty there, unlike on the task's own way down; ``--sac-look-first`` resets each hand start
+at the task's start first (``HandStarts(look_first=True)``)::
+
+    python benchmarks/bench_rl.py --only sac --sac-memory --sac-window 192 --sac-steps 80000 \
+        --sac-don-steps 80000 --sac-demos 300 --sac-bc 1.0 --sac-demo-fraction 0.5 --sac-look-first \
+        --sac-eval-episodes 50 --out runs/rl-look --jobs 2 --section rl-sac-look
+
+(about 97 min with ``--jobs 2``; RESULTS "rl-sac-look": from the task's start 92% with true keypoints, 42% with
+the DON's, 36% with simulated ones.)
 
 Longer recipe for a GPU machine (16 cores, one GPU: the DON on the GPU on 8 envs' images at once, their
 physics in 8 subprocesses, a gradient step per env step)::
@@ -470,7 +479,7 @@ def _sac_env_kwargs(args: argparse.Namespace, keypoint_model: str) -> dict[str, 
         "goal": args.sac_goal,
         "memory": args.sac_memory,
         "window_px": args.sac_window,
-    }
+    } | ({"look_first": True} if args.sac_look_first else {})
 
 
 def _sac_steps(args: argparse.Namespace) -> dict[str, int]:
@@ -563,7 +572,8 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
     starts_text = (
         "training episodes start with the hand "
         + ", ".join(f"{name} {share:.0%}" for name, share in args.sac_hand_starts.items())
-        + " of the time (`HandStarts`; the rest from the task's start)"
+        + " of the time (`HandStarts`; the rest from the task's start"
+        + (", each hand start after one look from the task's start, `look_first`)" if args.sac_look_first else ")")
         if args.sac_hand_starts
         else "training episodes start from the task's start"
     ) + (
@@ -663,7 +673,7 @@ PART_SETTINGS = {
     "sac": (
         "sac_goal", "sac_envs", "sac_steps", "sac_don_steps", "sac_max_steps", "sac_learning_starts",
         "sac_eval_episodes", "sac_hand_starts", "sac_memory", "sac_window", "vectorize", "sac_demos", "sac_bc",
-        "sac_demo_fraction", "sac_gamma", "sac_updates_per_step",
+        "sac_demo_fraction", "sac_gamma", "sac_updates_per_step", "sac_look_first",
     ),
 }  # fmt: skip
 COMMON_SETTINGS = ("keypoint_model", "sensor", "seed", "image_size", "train_device")
@@ -758,6 +768,12 @@ def _parser() -> argparse.ArgumentParser:
         f"'none' for none; default {','.join(f'{k}={v}' for k, v in DEFAULT_HAND_STARTS.items())})",
     )  # fmt: skip
     parser.add_argument(
+        "--sac-look-first", action="store_true",
+        help="each hand start comes after one look from the task's start (HandStarts(look_first=True)), so that "
+        "with --sac-memory the policy remembers the part at a hand start as on the task's own way down (without it "
+        "the camera never saw the part there: too near, or out of view)",
+    )  # fmt: skip
+    parser.add_argument(
         "--sac-demos", type=int, default=0, metavar="N",
         help="episodes of the privileged expert (EndEffectorExpert) written into each SAC run's replay buffer before "
         "learning, stepped in the run's own observation pipeline from the task's start (default 0: none)",
@@ -799,6 +815,13 @@ def main(argv: list[str] | None = None) -> int:
     except DonGymError as exc:
         parser.error(
             f"--sac-demos {args.sac_demos} --sac-bc {args.sac_bc} --sac-demo-fraction {args.sac_demo_fraction}: {exc}"
+        )
+    if args.sac_look_first and not args.sac_hand_starts:
+        parser.error("--sac-look-first needs hand starts to look before (--sac-hand-starts, not 'none')")
+    if args.sac_look_first and args.sac_envs > 1:
+        parser.error(
+            f"--sac-look-first with --sac-envs {args.sac_envs}: the DON run's envs are batched and find the keypoints "
+            "outside their sub-envs, so a hand start cannot look first; use --sac-envs 1"
         )
     if args.quick:
         args.throughput_envs, args.throughput_steps = [1, 2], 2

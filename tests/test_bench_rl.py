@@ -106,6 +106,23 @@ def test_sac_memory_and_window_reach_every_sac_run_and_record_apart(tmp_path: Pa
         env.close()
 
 
+def test_look_first_reaches_every_sac_run_and_needs_hand_starts_on_single_envs(tmp_path: Path, capsys) -> None:
+    parser = bench_rl._parser()
+    args = parser.parse_args(["--out", str(tmp_path), "--sac-memory", "--sac-look-first"])
+    assert bench_rl._custom_settings(parser, args, "sac") == ["sac_memory", "sac_look_first"]
+    args.image_size = (64, 48)
+    assert all(run.kwargs["env_kwargs"]["look_first"] for run in bench_rl.sac_runs(args, "oracle"))
+    assert "look_first" not in bench_rl.sac_runs(_args(tmp_path), "oracle")[0].kwargs["env_kwargs"]
+    for options, message in (
+        (["--sac-hand-starts", "none"], "--sac-look-first needs hand starts"),
+        (["--sac-envs", "2"], "--sac-look-first with --sac-envs 2"),
+    ):
+        with pytest.raises(SystemExit) as exit_info:
+            bench_rl.main(["--only", "sac", "--sac-look-first", *options, "--out", str(tmp_path)])
+        assert exit_info.value.code == 2
+        assert message in capsys.readouterr().err
+
+
 def test_demonstrations_and_discount_reach_every_sac_run_and_bad_options_are_refused(tmp_path: Path, capsys) -> None:
     parser = bench_rl._parser()
     options = ["--sac-demos", "5", "--sac-bc", "0.5", "--sac-gamma", "0.98", "--sac-updates-per-step", "2"]

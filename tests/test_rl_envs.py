@@ -251,6 +251,47 @@ def test_hand_starts_put_the_hand_at_or_on_the_part_and_the_part_lifts_from_the_
     starts.close()
 
 
+def test_a_hand_start_that_looks_first_remembers_the_part_as_seen_from_the_task_start() -> None:
+    from don_gym.wrappers.goals import make_keypoint_env
+    from don_gym.wrappers.memory import UNSEEN_POINT_M
+
+    def env(look_first: bool) -> gym.Env:
+        return make_keypoint_env(
+            "toolcap", "simulated", "oracle", hand_starts={"at_part": 1.0}, memory=True, look_first=look_first,
+            control="ee", max_steps=20,
+        )  # fmt: skip
+
+    seen_from_above, _ = env(False).reset(seed=5, options={"hand_start": "observe"})
+    assert np.all(seen_from_above["keypoint_confidence"] > 0.5)
+    # At the part the camera is too near to see it: without a look, the memory holds nothing.
+    blind, info = env(False).reset(seed=5)
+    assert info["hand_start"] == "at_part" and np.all(blind["keypoint_confidence"] == 0)
+    np.testing.assert_allclose(blind["keypoint_age"], 20)
+    np.testing.assert_allclose(blind["keypoint_memory_points"], np.tile(UNSEEN_POINT_M, (2, 1)), atol=1e-6)
+    looking = env(True)
+    obs, info = looking.reset(seed=5)
+    assert info["hand_start"] == "at_part" and np.all(obs["keypoint_confidence"] == 0)
+    np.testing.assert_allclose(obs["keypoint_age"], 1)  # seen at the reset, then one step that held still
+    np.testing.assert_allclose(obs["keypoint_memory_points"], seen_from_above["keypoint_points"], atol=1e-6)
+    tcp = looking.unwrapped.robot.tcp_pose()[:3, 3]
+    grasp_point = looking.unwrapped.oracle_action()[:3]
+    np.testing.assert_allclose(tcp, grasp_point, atol=0.02)  # the hand is at the part all the same
+    with pytest.raises(DonGymError, match="call reset"):
+        looking.unwrapped.start_hand("in_hand")  # the hold step was the episode's first
+    with pytest.raises(DonGymError, match="look_first=True needs keypoints"):
+        make_keypoint_env("toolcap", None, hand_starts={"at_part": 1.0}, look_first=True, control="ee")
+    with pytest.raises(DonGymError, match="look_first=True: batched"):
+        rl.make_batched_sac_vec_env(1, {"hand_starts": {"at_part": 1.0}, "look_first": True})
+    with pytest.raises(DonGymError, match="look_first='yes'"):
+        HandStarts(gym.make("DONToolcapPick-v0", control="ee", image_size=None), {"in_hand": 0.5}, look_first="yes")
+    grasp_mode = gym.make("DONToolcapPick-v0", image_size=None)
+    grasp_mode.reset(seed=0)
+    with pytest.raises(DonGymError, match="needs control='ee'"):
+        grasp_mode.unwrapped.start_hand("in_hand")
+    with pytest.raises(DonGymError, match="hand_start='flying'"):
+        looking.unwrapped.start_hand("flying")
+
+
 def test_sac_her_trains_writes_its_run_and_resumes(tmp_path: Path) -> None:
     env_kwargs = {"keypoints": "true", "goal": "lift", "max_steps": 10}
     algo_kwargs = {

@@ -174,12 +174,24 @@ class HandStarts(gym.Wrapper, gym.utils.RecordConstructorArgs):
     The start is drawn from a generator seeded by ``reset(seed=...)``, so two runs (or two policies
     evaluated) with the same seeds get the same starts. A reset whose options already name a
     ``hand_start`` keeps it. ``info["hand_start"]`` tells which start an episode got.
+
+    ``look_first=False``: the env resets with the hand already at the start, so the wrist camera never saw
+    the part (near it, the part is inside the sensor's minimum range or outside the view); a
+    :class:`~don_gym.wrappers.KeypointMemory` then remembers nothing, unlike on the task's own way down.
+    ``look_first=True``: the env resets at the task's start, the hand moves to the start
+    (:meth:`PickPlaceEnv.start_hand <don_gym.sim.env.PickPlaceEnv.start_hand>`) and the reset returns the observation
+    of one step that holds still (action 0), so that everything wrapped below sees the part from above first.
+    Then wrap the keypoints (and their memory) in this wrapper, not this one in them; that step counts
+    against the episode's ``max_steps``.
     """
 
-    def __init__(self, env: gym.Env, shares: dict[str, float]) -> None:
-        gym.utils.RecordConstructorArgs.__init__(self, shares=shares)
+    def __init__(self, env: gym.Env, shares: dict[str, float], look_first: bool = False) -> None:
+        gym.utils.RecordConstructorArgs.__init__(self, shares=shares, look_first=look_first)
         gym.Wrapper.__init__(self, env)
+        if not isinstance(look_first, bool):
+            raise DonGymError(f"look_first={look_first!r}: expected True or False")
         self.shares = hand_start_shares(shares)
+        self.look_first = look_first
         self._names = list(self.shares)
         self._probabilities = np.array([self.shares[n] for n in self._names])
         self._rng = np.random.default_rng()
@@ -190,7 +202,14 @@ class HandStarts(gym.Wrapper, gym.utils.RecordConstructorArgs):
         options = dict(options or {})
         if "hand_start" not in options:
             options["hand_start"] = self._names[int(self._rng.choice(len(self._names), p=self._probabilities))]
-        return self.env.reset(seed=seed, options=options)
+        hand_start = options["hand_start"]
+        if not self.look_first or hand_start == "observe":
+            return self.env.reset(seed=seed, options=options)
+        self.env.reset(seed=seed, options=options | {"hand_start": "observe"})
+        self.env.unwrapped.start_hand(hand_start)
+        hold = np.zeros(self.action_space.shape, dtype=self.action_space.dtype)
+        obs, _, _, _, info = self.env.step(hold)
+        return obs, dict(info) | {"hand_start": hand_start}
 
 
 def make_keypoint_env(
@@ -203,6 +222,7 @@ def make_keypoint_env(
     keypoint_kwargs: dict[str, Any] | None = None,
     window_px: int | None = None,
     memory: bool = False,
+    look_first: bool = False,
     **env_kwargs: Any,
 ) -> gym.Env:
     """``DONPick-v0`` of ``object`` (``env_kwargs``: its arguments, e.g. ``control``, ``sensor``) with the part's
@@ -216,7 +236,9 @@ def make_keypoint_env(
     placed by :class:`~don_gym.wrappers.KeypointObservation`). ``hand_starts``: :class:`HandStarts` shares,
     innermost, so that a vector env's automatic resets draw a start too. ``keypoint_kwargs``: more arguments of
     :class:`~don_gym.wrappers.KeypointObservation`. ``memory``: add :class:`~don_gym.wrappers.KeypointMemory` (each
-    keypoint's last seen place and age) over the keypoints.
+    keypoint's last seen place and age) over the keypoints. ``look_first`` (with ``hand_starts``): the hand starts
+    are drawn outermost instead, each after a look from the task's start (:class:`HandStarts`), so that the
+    keypoints and their memory have seen the part as on the task's own way down.
     """
     if keypoints is not None and keypoints not in KEYPOINT_SOURCES:
         raise DonGymError(f"keypoints={keypoints!r} is unknown; expected one of {list(KEYPOINT_SOURCES)}")
@@ -224,11 +246,13 @@ def make_keypoint_env(
     if images and window_px is not None:
         env_kwargs["window_px"] = window_px
     env = gym.make("DONPick-v0", object=object, image_size=image_size if images else None, **env_kwargs)
-    if hand_starts:
+    if hand_starts and not look_first:
         env = HandStarts(env, hand_starts)
     if keypoints is None:
         if memory:
             raise DonGymError("memory=True needs keypoints (keypoints=None makes an env of wrist images only)")
+        if look_first:
+            raise DonGymError("look_first=True needs keypoints (what would look first is the keypoints' wrapper)")
         return env
     if keypoints == "don":
         env = KeypointObservation(env, model=keypoint_model, keep_images=False, **(keypoint_kwargs or {}))
@@ -238,7 +262,9 @@ def make_keypoint_env(
         if noise is None and str(keypoint_model) != "oracle":
             noise = keypoint_model  # the network's default noise model
         env = SimulatedKeypoints(env, noise=noise, keep_images=False)
-    return KeypointMemory(env, max_age_steps=env.unwrapped.max_steps) if memory else env
+    if memory:
+        env = KeypointMemory(env, max_age_steps=env.unwrapped.max_steps)
+    return HandStarts(env, hand_starts, look_first=True) if hand_starts and look_first else env
 
 
 def make_goal_env(

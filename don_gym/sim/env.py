@@ -192,6 +192,7 @@ class PickPlaceEnv(gym.Env):
     starts the hand elsewhere (:data:`HAND_STARTS`): the scripted grasp, run with the true pose, stops
     with the hand open 12 cm above the part (``"above_part"``), open around it (``"at_part"``) or closed
     on it (``"in_hand"``); a start for learning (:class:`~don_gym.wrappers.HandStarts`), not the task.
+    :meth:`start_hand` makes the same move right after a reset at the task's start, once the camera has seen the part.
     With ``background="random"`` the table top, the floor and the cradle get a new look at every reset
     (see Arguments), drawn from the reset's seed apart from everything above, which stays as with
     ``"plain"``: the same seed gives the same part pose, sensor noise and calibration error either way.
@@ -473,13 +474,30 @@ class PickPlaceEnv(gym.Env):
         self._ee_yaw_rad = float(OBSERVATION_YAW_RAD)
         self.window_centre_world = WINDOW_CENTRE_WORLD_M.copy()
         self._randomise_backdrop(seed)
+        self._move_hand_to_start(hand_start)
+        info = self._info() | {"outcome": "fail", "is_success": False, "hand_start": hand_start}
+        return self._observation(), info
+
+    def _move_hand_to_start(self, hand_start: str) -> None:
         if HAND_STARTS[hand_start] is not None:
             action = self.oracle_action()
             script = GraspPlaceScript(self.sim, self.robot, self.task)
             yaw = script.grasp_start(action[:3], float(action[3]), HAND_STARTS[hand_start], EE_WRIST_MAX_RAD)
             self._ee_yaw_rad = yaw
-        info = self._info() | {"outcome": "fail", "is_success": False, "hand_start": hand_start}
-        return self._observation(), info
+
+    def start_hand(self, hand_start: str) -> None:
+        """Move the hand from the observation pose to ``hand_start`` (one of :data:`HAND_STARTS`) as
+        ``reset(options={"hand_start": ...})`` does, but after a reset at the task's start: the wrist camera has
+        then seen the part once from above, as on the way down of a real grasp
+        (:class:`~don_gym.wrappers.HandStarts` with ``look_first``). Only in ee mode, before the episode's first
+        step; uses the true pose, like the reset option."""
+        if not isinstance(hand_start, str) or hand_start not in HAND_STARTS:
+            raise DonGymError(f"hand_start={hand_start!r}: expected one of {list(HAND_STARTS)}")
+        if self.control != "ee":
+            raise DonGymError(f"start_hand({hand_start!r}) needs control='ee' (grasp mode starts observing)")
+        if self._episode_over or self._steps != 0:
+            raise DonGymError("start_hand() moves the hand of an episode just reset: call reset() first")
+        self._move_hand_to_start(hand_start)
 
     def _randomise_backdrop(self, seed: int | None) -> None:
         """New backdrop and cradle colour for the episode; a stream of its own, so that the part's pose, the
