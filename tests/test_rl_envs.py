@@ -284,6 +284,8 @@ def test_a_hand_start_that_looks_first_remembers_the_part_as_seen_from_the_task_
         rl.make_batched_sac_vec_env(1, {"hand_starts": {"at_part": 1.0}, "look_first": True})
     with pytest.raises(DonGymError, match="look_first='yes'"):
         HandStarts(gym.make("DONToolcapPick-v0", control="ee", image_size=None), {"in_hand": 0.5}, look_first="yes")
+    with pytest.raises(DonGymError, match="max_steps=1"):
+        HandStarts(gym.make("DONToolcapPick-v0", control="ee", image_size=None, max_steps=1), {"in_hand": 1.0}, True)
     grasp_mode = gym.make("DONToolcapPick-v0", image_size=None)
     grasp_mode.reset(seed=0)
     with pytest.raises(DonGymError, match="needs control='ee'"):

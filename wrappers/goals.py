@@ -190,6 +190,11 @@ class HandStarts(gym.Wrapper, gym.utils.RecordConstructorArgs):
         gym.Wrapper.__init__(self, env)
         if not isinstance(look_first, bool):
             raise DonGymError(f"look_first={look_first!r}: expected True or False")
+        if look_first and getattr(env.unwrapped, "max_steps", 2) < 2:
+            raise DonGymError(
+                f"look_first=True on an env of max_steps={env.unwrapped.max_steps}: its one step that holds still "
+                "would end the episode; expected max_steps >= 2"
+            )
         self.shares = hand_start_shares(shares)
         self.look_first = look_first
         self._names = list(self.shares)
