@@ -453,10 +453,7 @@ class PickPlaceEnv(gym.Env):
         if pose_id is not None and (not is_integer(pose_id) or not 0 <= pose_id < len(FIXED_POSES)):
             raise DonGymError(f"options['pose_id']={pose_id!r}: expected an integer 0..{len(FIXED_POSES) - 1}")
         hand_start = options.get("hand_start", "observe")
-        if not isinstance(hand_start, str) or hand_start not in HAND_STARTS:
-            raise DonGymError(f"options['hand_start']={hand_start!r}: expected one of {list(HAND_STARTS)}")
-        if hand_start != "observe" and self.control != "ee":
-            raise DonGymError(f"options['hand_start']={hand_start!r} needs control='ee' (grasp mode starts observing)")
+        self._check_hand_start(hand_start, "options['hand_start']")
         super().reset(seed=None if seed is None else int(seed))  # only once everything is checked
         if pose_id is not None:
             x, y, yaw = FIXED_POSES[int(pose_id)]
@@ -485,16 +482,21 @@ class PickPlaceEnv(gym.Env):
             yaw = script.grasp_start(action[:3], float(action[3]), HAND_STARTS[hand_start], EE_WRIST_MAX_RAD)
             self._ee_yaw_rad = yaw
 
+    def _check_hand_start(self, hand_start: Any, name: str, always_ee: bool = False) -> None:
+        """A one-line DonGymError naming ``name`` unless ``hand_start`` is one of :data:`HAND_STARTS` this env can
+        take: any but "observe" (with ``always_ee``, any) needs ee mode."""
+        if not isinstance(hand_start, str) or hand_start not in HAND_STARTS:
+            raise DonGymError(f"{name}={hand_start!r}: expected one of {list(HAND_STARTS)}")
+        if (always_ee or hand_start != "observe") and self.control != "ee":
+            raise DonGymError(f"{name}={hand_start!r} needs control='ee' (grasp mode starts observing)")
+
     def start_hand(self, hand_start: str) -> None:
         """Move the hand from the observation pose to ``hand_start`` (one of :data:`HAND_STARTS`) as
         ``reset(options={"hand_start": ...})`` does, but after a reset at the task's start: the wrist camera has
         then seen the part once from above, as on the way down of a real grasp
         (:class:`~don_gym.wrappers.HandStarts` with ``look_first``). Only in ee mode, before the episode's first
         step; uses the true pose, like the reset option."""
-        if not isinstance(hand_start, str) or hand_start not in HAND_STARTS:
-            raise DonGymError(f"hand_start={hand_start!r}: expected one of {list(HAND_STARTS)}")
-        if self.control != "ee":
-            raise DonGymError(f"start_hand({hand_start!r}) needs control='ee' (grasp mode starts observing)")
+        self._check_hand_start(hand_start, "hand_start", always_ee=True)
         if self._episode_over or self._steps != 0:
             raise DonGymError("start_hand() moves the hand of an episode just reset: call reset() first")
         self._move_hand_to_start(hand_start)
