@@ -70,12 +70,12 @@ def make_ppo_env(
     return KeypointFeatures(env, relative_to="centroid", robot_state=False)
 
 
-def _sac_head(env: gym.Env, goal: str | None, memory: bool = False) -> gym.Env:
+def _sac_head(env: gym.Env, goal: str | None, memory: bool = False, encoding: str = "plain") -> gym.Env:
     if memory:
         env = KeypointMemory(env, max_age_steps=env.unwrapped.max_steps)
     if goal is None:
-        return KeypointFeatures(env, relative_to="tcp", robot_state=True)
-    return KeypointGoal(env, goal=goal)
+        return KeypointFeatures(env, relative_to="tcp", robot_state=True, encoding=encoding)
+    return KeypointGoal(env, goal=goal, encoding=encoding)
 
 
 def make_sac_env(
@@ -93,6 +93,7 @@ def make_sac_env(
     window_px: int | None = None,
     memory: bool = False,
     look_first: bool = False,
+    encoding: str = "plain",
 ) -> gym.Env:
     """The SAC baseline's env: ``control="ee"``, keypoints of every wrist-camera frame (relative to the
     TCP) plus the robot state as one flat vector; the keypoints move with the camera and vanish when
@@ -105,19 +106,22 @@ def make_sac_env(
     around the part (:func:`~don_gym.wrappers.goals.make_keypoint_env`). ``memory``: the keypoints' last seen places
     and ages too (:class:`~don_gym.wrappers.KeypointMemory`). ``look_first``: each hand start comes after a look
     from the task's start, so that the keypoints' memory holds the part as on the task's own way down
-    (:class:`~don_gym.wrappers.HandStarts`)."""
+    (:class:`~don_gym.wrappers.HandStarts`). ``encoding``: the flat observation's
+    (:class:`~don_gym.wrappers.KeypointFeatures`): "plain", or "hand" (with ``memory``), the imitation benchmark's
+    hand-frame features."""
     if goal is not None and goal not in GOALS:
         raise DonGymError(f"goal={goal!r} is unknown; expected None or one of {list(GOALS)}")
     if goal is not None:
         return make_goal_env(
             object, goal, keypoints, keypoint_model, noise, image_size, max_steps, hand_starts, keypoint_kwargs,
             sensor=sensor, reward_type=reward_type, window_px=window_px, memory=memory, look_first=look_first,
+            encoding=encoding,
         )  # fmt: skip
     env = make_keypoint_env(
         object, keypoints, keypoint_model, noise, image_size, hand_starts, keypoint_kwargs, window_px, memory,
         look_first, control="ee", sensor=sensor, reward_type=reward_type, max_steps=max_steps,
     )  # fmt: skip
-    return _sac_head(env, goal)
+    return _sac_head(env, goal, encoding=encoding)
 
 
 def make_image_env(
@@ -301,7 +305,9 @@ def make_batched_sac_vec_env(
     except Exception:
         vector_env.close()
         raise
-    head = functools.partial(_sac_head, goal=goal, memory=bool(kwargs.get("memory", False)))
+    head = functools.partial(
+        _sac_head, goal=goal, memory=bool(kwargs.get("memory", False)), encoding=kwargs.get("encoding", "plain")
+    )
     return make_batched_vec_env(keypoint_env, head, monitor=monitor)
 
 

@@ -114,6 +114,7 @@ from don_gym.objects import load_object  # noqa: E402
 from don_gym.plotting import plot_learning_curve  # noqa: E402
 from don_gym.stats import wilson_interval  # noqa: E402
 from don_gym.wrappers.goals import hand_start_shares  # noqa: E402
+from don_gym.wrappers.rl import ENCODINGS  # noqa: E402
 from don_gym.zoo import read_don_metadata, shipped_names  # noqa: E402
 
 DEFAULT_OUT = REPO_ROOT / "runs" / "rl"
@@ -399,33 +400,33 @@ def run_ppo(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
     trained, simulated = (_train(args, run) for run in ppo_runs(args, keypoint_model))
     n = args.ppo_eval_episodes
     env = rl.make_ppo_env(**don_kwargs)
-    results = {"PPO, DON keypoints": rl.evaluate(env, rl.model_policy(trained.model), n, EVAL_SEED, "eval PPO")}
+    results = {"PPO, DON keypoints": rl.evaluate(env, rl.model_policy(trained.model), n, args.eval_seed, "eval PPO")}
     results["PPO trained on the model of the DON, run with the DON"] = rl.evaluate(
-        env, rl.model_policy(simulated.model), n, EVAL_SEED, "eval PPO (simulated -> DON)"
+        env, rl.model_policy(simulated.model), n, args.eval_seed, "eval PPO (simulated -> DON)"
     )
     sim_env = rl.make_ppo_env(**sim_kwargs)
     results["PPO trained on the model of the DON, run on it"] = rl.evaluate(
-        sim_env, rl.model_policy(simulated.model), n, EVAL_SEED, "eval PPO (simulated)"
+        sim_env, rl.model_policy(simulated.model), n, args.eval_seed, "eval PPO (simulated)"
     )
     sim_env.close()
     results["zero residual (keypoint axis grasp)"] = rl.evaluate(
-        env, lambda _obs: np.zeros(4, np.float32), n, EVAL_SEED, "eval zero residual"
+        env, lambda _obs: np.zeros(4, np.float32), n, args.eval_seed, "eval zero residual"
     )
     results["random residual"] = rl.evaluate(
-        env, rl.random_policy(env.action_space, args.seed), n, EVAL_SEED, "eval random (axis frame)"
+        env, rl.random_policy(env.action_space, args.seed), n, args.eval_seed, "eval random (axis frame)"
     )
     base = gym.make(
         "DONPick-v0", object="toolcap", control="grasp", image_size=args.image_size, sensor=args.sensor,
         reward_type="dense",
     ).unwrapped  # fmt: skip
     results["random, whole action box"] = rl.evaluate(
-        base, rl.random_policy(base.action_space, args.seed), n, EVAL_SEED, "eval random (box)"
+        base, rl.random_policy(base.action_space, args.seed), n, args.eval_seed, "eval random (box)"
     )
     axis_env, axis_policy = _axis_grasp_policy(keypoint_model, args.image_size, args.sensor)
-    results["AxisGraspAgent (scripted)"] = rl.evaluate(axis_env, axis_policy, n, EVAL_SEED, "eval AxisGraspAgent")
+    results["AxisGraspAgent (scripted)"] = rl.evaluate(axis_env, axis_policy, n, args.eval_seed, "eval AxisGraspAgent")
     axis_env.close()
     results["oracle grasp (true pose)"] = rl.evaluate(
-        base, lambda _obs: base.oracle_action(), n, EVAL_SEED, "eval oracle"
+        base, lambda _obs: base.oracle_action(), n, args.eval_seed, "eval oracle"
     )
     env.close()
     base.close()
@@ -460,7 +461,8 @@ def run_ppo(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         f"Runs: `{_shown(args.out / 'ppo_don')}`, "
         f"`{_shown(args.out / 'ppo_simulated')}`. Learning curves: `{_shown(figure)}`.",
         "",
-        f"Evaluation on the same {n} held-out episodes (seeds {EVAL_SEED}..{EVAL_SEED + n - 1}); transfer gap of "
+        f"Evaluation on the same {n} held-out episodes (seeds {args.eval_seed}..{args.eval_seed + n - 1}); "
+        "transfer gap of "
         f"the policy trained on the model of the DON (its success there minus with the DON): {gap:+.0%}.",
         "",
         TABLE_HEAD,
@@ -471,15 +473,19 @@ def run_ppo(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
 
 # ------------------------------------------------------------------------------------------ SAC
 def _sac_env_kwargs(args: argparse.Namespace, keypoint_model: str) -> dict[str, Any]:
-    return {
-        "keypoint_model": keypoint_model,
-        "image_size": args.image_size,
-        "sensor": args.sensor,
-        "max_steps": args.sac_max_steps,
-        "goal": args.sac_goal,
-        "memory": args.sac_memory,
-        "window_px": args.sac_window,
-    } | ({"look_first": True} if args.sac_look_first else {})
+    return (
+        {
+            "keypoint_model": keypoint_model,
+            "image_size": args.image_size,
+            "sensor": args.sensor,
+            "max_steps": args.sac_max_steps,
+            "goal": args.sac_goal,
+            "memory": args.sac_memory,
+            "window_px": args.sac_window,
+        }
+        | ({"look_first": True} if args.sac_look_first else {})
+        | ({"encoding": args.sac_features} if args.sac_features != "plain" else {})
+    )
 
 
 def _sac_steps(args: argparse.Namespace) -> dict[str, int]:
@@ -525,17 +531,17 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         for source in SAC_SOURCES:
             env = rl.make_sac_env(**base_kwargs, keypoints=source, hand_starts=hand_starts)
             results[f"{start}: SAC+HER, {source} keypoints"] = rl.evaluate(
-                env, rl.model_policy(runs[source].model), n, EVAL_SEED, f"eval SAC ({source}, {start})"
+                env, rl.model_policy(runs[source].model), n, args.eval_seed, f"eval SAC ({source}, {start})"
             )
             if source == "don":
                 results[f"{start}: SAC+HER trained on simulated keypoints, run with the DON"] = rl.evaluate(
-                    env, rl.model_policy(runs["simulated"].model), n, EVAL_SEED, f"eval SAC (sim -> DON, {start})"
+                    env, rl.model_policy(runs["simulated"].model), n, args.eval_seed, f"eval SAC (sim -> DON, {start})"
                 )
             if source == "true":
                 # Random actions ignore the observation, and nothing in the physics depends on the keypoints'
                 # source: the fastest env gives the same episodes.
                 results[f"{start}: random"] = rl.evaluate(
-                    env, rl.random_policy(env.action_space, args.seed), n, EVAL_SEED, f"eval random ({start})"
+                    env, rl.random_policy(env.action_space, args.seed), n, args.eval_seed, f"eval random ({start})"
                 )
             env.close()
     # The learning curves mix the training starts: their random baseline is a random policy on that mix,
@@ -547,7 +553,7 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         # Cheap (no rendering, no network): more episodes than the policies get, for a steadier line.
         random_policy = rl.random_policy(env.action_space, args.seed)
         results[curve_baseline] = rl.evaluate(
-            env, random_policy, random_episodes, EVAL_SEED, "eval random (training starts)"
+            env, random_policy, random_episodes, args.eval_seed, "eval random (training starts)"
         )
         env.close()
     window = max(3, min(50, min(len(r.curve.successes) for r in runs.values()) // 5))
@@ -600,6 +606,12 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         f"{args.sac_max_steps} steps, {args.sac_envs} env(s); policy input: TCP pose, gripper width and the "
         "keypoints of each frame (the true `achieved_goal` only relabels and rewards, it is not a policy input)"
         + (", each keypoint's last seen place and age (`KeypointMemory`)" if args.sac_memory else "")
+        + (
+            " in the hand-frame encoding (`encoding='hand'`: hand yaw as cos/sin, wrist angle, offsets from the TCP "
+            "also at a 1 cm tanh scale, the remembered axis seen from the hand)"
+            if args.sac_features == "hand"
+            else ""
+        )
         + f" plus the desired goal. Keypoints: `simulated` (a model of `{keypoint_model}`, no rendering; hidden "
         f"outside the camera's view and the sensor's depth range), `don` (`{keypoint_model}` on "
         f"{args.image_size[0]}x{args.image_size[1]} wrist images"
@@ -610,13 +622,13 @@ def run_sac(args: argparse.Namespace, keypoint_model: str) -> tuple[str, dict[st
         f"Runs: `{_shown(args.out)}/sac_{args.sac_goal}_*`. Learning curves "
         f"(training episodes, all starts, beside a random policy on the same starts): `{_shown(figure)}`.",
         "",
-        f"Evaluation on the same {n} held-out episodes (seeds {EVAL_SEED}..{EVAL_SEED + n - 1}) from two starts: "
-        "the task's own (the hand 0.45 m above the table, open) and the part in the closed hand (`hand_start="
+        f"Evaluation on the same {n} held-out episodes (seeds {args.eval_seed}..{args.eval_seed + n - 1}) from two "
+        "starts: the task's own (the hand 0.45 m above the table, open) and the part in the closed hand (`hand_start="
         "'in_hand'`); every policy with its own keypoints unless said; transfer gap of the simulated-keypoint "
         f"policy (there minus with the DON): {gaps}. Success: `info['is_success']` at the episode's end."
         + (
             f" *training starts: random* = a random policy on the training episodes' mix of starts (seeds "
-            f"{EVAL_SEED}..{EVAL_SEED + random_episodes - 1}), the baseline of the learning curves."
+            f"{args.eval_seed}..{args.eval_seed + random_episodes - 1}), the baseline of the learning curves."
             if args.sac_hand_starts
             else ""
         ),
@@ -673,10 +685,10 @@ PART_SETTINGS = {
     "sac": (
         "sac_goal", "sac_envs", "sac_steps", "sac_don_steps", "sac_max_steps", "sac_learning_starts",
         "sac_eval_episodes", "sac_hand_starts", "sac_memory", "sac_window", "vectorize", "sac_demos", "sac_bc",
-        "sac_demo_fraction", "sac_gamma", "sac_updates_per_step", "sac_look_first",
+        "sac_demo_fraction", "sac_gamma", "sac_updates_per_step", "sac_look_first", "sac_features",
     ),
 }  # fmt: skip
-COMMON_SETTINGS = ("keypoint_model", "sensor", "seed", "image_size", "train_device")
+COMMON_SETTINGS = ("keypoint_model", "sensor", "seed", "image_size", "train_device", "eval_seed")
 
 
 def _custom_settings(parser: argparse.ArgumentParser, args: argparse.Namespace, part: str) -> list[str]:
@@ -721,6 +733,11 @@ def _parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--sensor", default="d435")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--eval-seed", type=int, default=EVAL_SEED, metavar="S",
+        help=f"held-out episodes are reset(seed=S + i) (default {EVAL_SEED}); a fresh S gives a fresh held-out set "
+        "when the default's has guided choices",
+    )  # fmt: skip
     parser.add_argument(
         "--image-size", type=positive_int, nargs=2, default=None, metavar=("W", "H"),
         help="wrist camera size (default: the size the keypoint network was trained at; 160x120 for the oracle)",
@@ -774,6 +791,12 @@ def _parser() -> argparse.ArgumentParser:
         "the camera never saw the part there: too near, or out of view)",
     )  # fmt: skip
     parser.add_argument(
+        "--sac-features", choices=ENCODINGS, default="plain",
+        help="the SAC policy's observation encoding (KeypointFeatures(encoding=...)): 'plain' (TCP quaternion, "
+        "offsets in 5 cm units) or 'hand' (the imitation benchmark's features: hand yaw as cos/sin, wrist angle, "
+        "offsets also at a 1 cm tanh scale, the remembered axis seen from the hand; needs --sac-memory)",
+    )  # fmt: skip
+    parser.add_argument(
         "--sac-demos", type=int, default=0, metavar="N",
         help="episodes of the privileged expert (EndEffectorExpert) written into each SAC run's replay buffer before "
         "learning, stepped in the run's own observation pipeline from the task's start (default 0: none)",
@@ -816,6 +839,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(
             f"--sac-demos {args.sac_demos} --sac-bc {args.sac_bc} --sac-demo-fraction {args.sac_demo_fraction}: {exc}"
         )
+    if args.sac_features == "hand" and not args.sac_memory:
+        parser.error("--sac-features hand reads the keypoints' memory: add --sac-memory")
     if args.sac_look_first and not args.sac_hand_starts:
         parser.error("--sac-look-first needs hand starts to look before (--sac-hand-starts, not 'none')")
     if args.sac_look_first and args.sac_envs > 1:
@@ -861,7 +886,7 @@ def main(argv: list[str] | None = None) -> int:
     runners = {"throughput": run_throughput, "ppo": run_ppo, "sac": run_sac}
     training = [run for part in parts if part in PART_RUNS for run in PART_RUNS[part](args, keypoint_model)]
     jobs = min(args.jobs or len(os.sched_getaffinity(0)), max(len(training), 1))
-    sections, summary = {}, {"keypoint_model": keypoint_model, "eval_seeds": [EVAL_SEED], "seed": args.seed}
+    sections, summary = {}, {"keypoint_model": keypoint_model, "eval_seeds": [args.eval_seed], "seed": args.seed}
     part_wall_s: dict[str, float] = {}
     training_wall_s = None  # the training stage's, once it has run (not with one job: each part trains its own)
     # The throughput part times the DON: it runs first, alone, before any training starts.

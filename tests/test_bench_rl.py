@@ -123,6 +123,19 @@ def test_look_first_reaches_every_sac_run_and_needs_hand_starts_on_single_envs(t
         assert message in capsys.readouterr().err
 
 
+def test_the_hand_encoding_reaches_every_sac_run_and_needs_the_memory(tmp_path: Path, capsys) -> None:
+    parser = bench_rl._parser()
+    args = parser.parse_args(["--out", str(tmp_path), "--sac-memory", "--sac-features", "hand", "--eval-seed", "7"])
+    assert bench_rl._custom_settings(parser, args, "sac") == ["eval_seed", "sac_memory", "sac_features"]
+    args.image_size = (64, 48)
+    assert all(run.kwargs["env_kwargs"]["encoding"] == "hand" for run in bench_rl.sac_runs(args, "oracle"))
+    assert "encoding" not in bench_rl.sac_runs(_args(tmp_path), "oracle")[0].kwargs["env_kwargs"]
+    with pytest.raises(SystemExit) as exit_info:
+        bench_rl.main(["--only", "sac", "--sac-features", "hand", "--out", str(tmp_path)])
+    assert exit_info.value.code == 2
+    assert "--sac-features hand reads the keypoints' memory" in capsys.readouterr().err
+
+
 def test_demonstrations_and_discount_reach_every_sac_run_and_bad_options_are_refused(tmp_path: Path, capsys) -> None:
     parser = bench_rl._parser()
     options = ["--sac-demos", "5", "--sac-bc", "0.5", "--sac-gamma", "0.98", "--sac-updates-per-step", "2"]

@@ -8,6 +8,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium import spaces
+from scipy.spatial.transform import Rotation
 
 from don_gym.agents import rl
 from don_gym.errors import DonGymError
@@ -15,6 +16,7 @@ from don_gym.plotting import plot_learning_curve
 from don_gym.wrappers.rl import (
     GRASP_OFFSET_XY_M,
     KEYPOINT_OFFSET_UNIT_M,
+    NEAR_UNIT_M,
     POSITION_UNIT_M,
     WORKSPACE_CENTRE_M,
     KeypointFeatures,
@@ -85,6 +87,56 @@ def test_keypoint_features_layout_and_missing_keypoints():
     nothing = dict(observation, keypoint_confidence=np.zeros(3, np.float32))
     assert keypoint_centroid(points, np.zeros(3)) is None
     np.testing.assert_array_equal(env.observation(nothing)[:15], 0.0)
+
+
+def test_the_hand_encoding_reads_the_part_from_the_hand_and_is_continuous_in_the_yaw():
+    space = _keypoint_space(2)
+    space.spaces["joint_positions"] = spaces.Box(-4.0, 4.0, shape=(9,), dtype=np.float32)
+    space.spaces["keypoint_memory_points"] = spaces.Box(-10.0, 10.0, shape=(2, 3), dtype=np.float32)
+    space.spaces["keypoint_age"] = spaces.Box(0.0, 50.0, shape=(2,), dtype=np.float32)
+    env = KeypointFeatures(_DictEnv(space), relative_to="tcp", robot_state=True, encoding="hand")
+    assert env.observation_space.shape == (7 + 14 * 2 + 4,)
+    tcp = np.array([0.5, 0.1, 0.2])
+    remembered = np.array([[0.51, 0.10, 0.03], [0.51, 0.12, 0.03]])  # the part's axis along world y
+
+    def observe(yaw: float, confidence=(1.0, 0.0)) -> np.ndarray:
+        # A top-down hand (z down) turned by ``yaw`` about the world z axis.
+        quaternion = Rotation.from_euler("ZX", [yaw, np.pi]).as_quat()
+        return env.observation({
+            "keypoint_points": remembered.astype(np.float32),
+            "keypoint_confidence": np.array(confidence, np.float32),
+            "keypoint_memory_points": remembered.astype(np.float32),
+            "keypoint_age": np.array([0.0, 25.0], np.float32),
+            "ee_pose": np.array([*tcp, *quaternion], dtype=np.float32),
+            "joint_positions": np.full(9, 0.5, np.float32),
+            "gripper_width": np.array([0.04], dtype=np.float32),
+        })  # fmt: skip
+
+    features = observe(0.3)
+    np.testing.assert_allclose(features[:3], tcp / POSITION_UNIT_M, atol=1e-5)
+    np.testing.assert_allclose(features[3:5], [np.cos(0.3), np.sin(0.3)], atol=1e-5)
+    assert features[5] == pytest.approx(0.5 / np.pi) and features[6] == pytest.approx(1.0)
+    now = features[7:19]  # the keypoints seen now: 5 cm units, then the 1 cm tanh near field; the second unseen
+    np.testing.assert_allclose(now[:3], (remembered[0] - tcp) / POSITION_UNIT_M, atol=1e-5)
+    np.testing.assert_array_equal(now[3:6], 0.0)
+    np.testing.assert_allclose(now[6:9], np.tanh((remembered[0] - tcp) / NEAR_UNIT_M), atol=1e-5)
+    np.testing.assert_allclose(features[19:21], [1.0, 0.0])
+    np.testing.assert_allclose(features[33:35], [0.0, 0.5])  # ages in the memory's 50 steps
+    # The axis seen from the hand: world y, so at hand yaw 0.3 (hand x turned by 0.3, y flipped by the top-down
+    # hand) it lies at angle -(pi/2 - 0.3) from hand x; (cos, sin) of the angle and of its double.
+    angle = -(np.pi / 2 - 0.3)
+    np.testing.assert_allclose(features[35:], [np.cos(angle), np.sin(angle), np.cos(2 * angle), np.sin(2 * angle)],
+                               atol=1e-5)  # fmt: skip
+    # Continuous where the quaternion is not: just either side of a half turn the hand's features agree.
+    a, b = observe(np.pi - 1e-4), observe(np.pi + 1e-4)
+    np.testing.assert_allclose(a, b, atol=1e-3)
+
+    with pytest.raises(DonGymError, match="relative_to='tcp'"):
+        KeypointFeatures(_DictEnv(space), relative_to="centroid", robot_state=True, encoding="hand")
+    with pytest.raises(DonGymError, match="KeypointMemory"):
+        KeypointFeatures(_DictEnv(_keypoint_space(2)), relative_to="tcp", robot_state=True, encoding="hand")
+    with pytest.raises(DonGymError, match="encoding='hands' is unknown"):
+        KeypointFeatures(_DictEnv(space), relative_to="tcp", robot_state=True, encoding="hands")
 
 
 def test_wrappers_reject_envs_they_cannot_serve():

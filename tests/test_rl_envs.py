@@ -276,6 +276,17 @@ def test_a_hand_start_that_looks_first_remembers_the_part_as_seen_from_the_task_
     tcp = looking.unwrapped.robot.tcp_pose()[:3, 3]
     grasp_point = looking.unwrapped.oracle_action()[:3]
     np.testing.assert_allclose(tcp, grasp_point, atol=0.02)  # the hand is at the part all the same
+    # The SAC env's hand-frame encoding carries that memory into the policy's input, from the TCP.
+    from don_gym.wrappers.rl import two_scale_offsets
+
+    hand = rl.make_sac_env(
+        keypoints="simulated", goal="lift", max_steps=20, memory=True, encoding="hand", hand_starts={"at_part": 1.0},
+        look_first=True,
+    )  # fmt: skip
+    features = hand.reset(seed=5)[0]["observation"]
+    assert features.shape == (39,)
+    remembered = two_scale_offsets(seen_from_above["keypoint_points"] - hand.unwrapped.robot.tcp_pose()[:3, 3])
+    np.testing.assert_allclose(features[21:33], remembered, atol=1e-4)
     with pytest.raises(DonGymError, match="call reset"):
         looking.unwrapped.start_hand("in_hand")  # the hold step was the episode's first
     with pytest.raises(DonGymError, match="look_first=True needs keypoints"):

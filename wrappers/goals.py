@@ -65,7 +65,8 @@ class KeypointGoal(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """Goal-conditioned observations and sparse goal rewards over a keypoint observation.
 
     Observation: ``observation`` the flat vector of :class:`~don_gym.wrappers.KeypointFeatures`
-    (the keypoints the wrapped env reports, relative to the TCP, and the robot state);
+    (the keypoints the wrapped env reports, relative to the TCP, and the robot state; ``encoding``: its
+    encoding, "hand" for the hand-frame one, which needs :class:`~don_gym.wrappers.KeypointMemory`'s keys);
     ``achieved_goal`` (6,) the TRUE axis points of the part at the two keypoints' axial positions
     (:func:`~don_gym.wrappers.simulated_keypoints.axis_points_world`, from ``info``), world metres;
     ``desired_goal`` (6,) the same points of the part where the goal wants it: ``goal="place"``
@@ -87,8 +88,9 @@ class KeypointGoal(gym.Wrapper, gym.utils.RecordConstructorArgs):
         env: gym.Env,
         goal: str = "place",
         fractions: tuple[float, float] = DEFAULT_AXIS_FRACTIONS,
+        encoding: str = "plain",
     ) -> None:
-        gym.utils.RecordConstructorArgs.__init__(self, goal=goal, fractions=fractions)
+        gym.utils.RecordConstructorArgs.__init__(self, goal=goal, fractions=fractions, encoding=encoding)
         gym.Wrapper.__init__(self, env)
         if goal not in GOALS:
             raise DonGymError(f"goal={goal!r} is unknown; expected one of {list(GOALS)}")
@@ -97,7 +99,7 @@ class KeypointGoal(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.goal = goal
         self.object_model = env_object_model(env)
         self.targets = axis_end_targets(self.object_model, fractions=fractions)
-        self.features = KeypointFeatures(env, relative_to="tcp", robot_state=True)
+        self.features = KeypointFeatures(env, relative_to="tcp", robot_state=True, encoding=encoding)
         self._seated_goal = self._goal_of(seated_pose(self.object_model))
         self._desired = self._seated_goal.copy()
         goal_space = spaces.Box(-POINT_BOUND_M, POINT_BOUND_M, shape=(6,), dtype=np.float32)
@@ -282,11 +284,12 @@ def make_goal_env(
     max_steps: int = 100,
     hand_starts: dict[str, float] | None = None,
     keypoint_kwargs: dict[str, Any] | None = None,
+    encoding: str = "plain",
     **env_kwargs: Any,
 ) -> gym.Env:
     """The goal-conditioned pick task for HER: ``control="ee"`` with keypoints (:func:`make_keypoint_env`)
-    under :class:`KeypointGoal` (``goal``: "lift", the sub-task, or "place"); episodes of at most
-    ``max_steps`` steps. The registered ``DONToolcapLift-v0`` is this with ``goal="lift"``, e.g.
+    under :class:`KeypointGoal` (``goal``: "lift", the sub-task, or "place"; ``encoding``: its observation's);
+    episodes of at most ``max_steps`` steps. The registered ``DONToolcapLift-v0`` is this with ``goal="lift"``, e.g.
     ``gym.make("DONToolcapLift-v0", keypoints="don", keypoint_model="toolcap/supervised-edge")``."""
     if goal not in GOALS:
         raise DonGymError(f"goal={goal!r} is unknown; expected one of {list(GOALS)}")
@@ -294,4 +297,4 @@ def make_goal_env(
         object, keypoints, keypoint_model, noise, image_size, hand_starts, keypoint_kwargs,
         control="ee", max_steps=max_steps, **env_kwargs,
     )  # fmt: skip
-    return KeypointGoal(env, goal=goal)
+    return KeypointGoal(env, goal=goal, encoding=encoding)

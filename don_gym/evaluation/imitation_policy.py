@@ -29,8 +29,18 @@ from don_gym.evaluation.demonstrations import kind_name
 from don_gym.geometry import transform_from_pose
 from don_gym.objects import ObjectModel, load_object
 from don_gym.sim.task import grasp_point_object
+from don_gym.wrappers.rl import (
+    NEAR_UNIT_M,
+    POSITION_UNIT_M,
+    axis_in_hand,
+    hand_keypoint_features,
+    hand_rotation,
+    robot_features,
+    two_scale_offsets,
+)
 
 __all__ = [
+    "AGE_UNIT_STEPS",
     "HISTORY",
     "IMAGE_KINDS",
     "INPUTS",
@@ -55,10 +65,8 @@ INPUTS = ("state", "true", "simulated:<network>", "don:<network>", "rgbd", "desc
 IMAGE_KINDS = ("rgbd", "descriptors")
 #: Steps of observation history the policy sees (the current one included).
 HISTORY = 2
-#: Unit (m) of positions in the feature vectors.
-POSITION_UNIT_M = 0.05
-#: Unit (m) of the near-field copy of the offsets from the TCP.
-NEAR_UNIT_M = 0.01
+#: Unit (steps) of the keypoints' ages in the feature vectors.
+AGE_UNIT_STEPS = 100
 
 
 def check_input(name: str) -> None:
@@ -75,65 +83,28 @@ def is_image_kind(kind: str) -> bool:
 
 
 # ------------------------------------------------------------------------------ features
-def _hand_rotation(obs: dict[str, np.ndarray]) -> np.ndarray:
-    """(3, 3) R_world_hand of the TCP pose ``ee_pose`` (x, y, z, qx, qy, qz, qw)."""
-    return Rotation.from_quat(np.asarray(obs["ee_pose"], dtype=np.float64).reshape(7)[3:]).as_matrix()
-
-
-def _robot_features(obs: dict[str, np.ndarray]) -> np.ndarray:
-    """TCP position, the hand's yaw as (cos, sin) (the top-down hand's quaternion flips sign as the yaw passes pi),
-    joint 7's angle (rad / pi: which way the wrist can still turn) and the finger opening."""
-    ee = np.asarray(obs["ee_pose"], dtype=np.float64).reshape(7)
-    hand_x = _hand_rotation(obs)[:2, 0]
-    wrist = np.asarray(obs["joint_positions"], dtype=np.float64).reshape(-1)[6:7] / np.pi
-    width = np.asarray(obs["gripper_width"], dtype=np.float64).reshape(1) / 0.04
-    return np.concatenate([ee[:3] / POSITION_UNIT_M, hand_x / max(np.linalg.norm(hand_x), 1e-9), wrist, width])
-
-
-def _axis_in_hand(axis_world: np.ndarray, R_world_hand: np.ndarray) -> np.ndarray:
-    """The part's axis direction seen from the hand: its angle a from hand x in the hand's xy plane as (cos a,
-    sin a, cos 2a, sin 2a). The grasp turns the hand until a is 0 or pi (fingers across the axis); the doubled
-    angle is the same for both, the plain one tells them apart: turning is then a smooth function of these."""
-    local = R_world_hand.T @ np.asarray(axis_world, dtype=np.float64)
-    angle = float(np.arctan2(local[1], local[0]))
-    return np.array([np.cos(angle), np.sin(angle), np.cos(2 * angle), np.sin(2 * angle)])
-
-
-def _offsets(offsets_m: np.ndarray) -> np.ndarray:
-    """Offsets (m) from the TCP at two scales, flat: in :data:`POSITION_UNIT_M` across the workspace, and squashed
-    at :data:`NEAR_UNIT_M` (``tanh``), which spreads the last centimetres of the approach, where the grasp needs
-    millimetres, over the whole range of a unit."""
-    offsets = np.asarray(offsets_m, dtype=np.float64)
-    return np.concatenate([(offsets / POSITION_UNIT_M).ravel(), np.tanh(offsets / NEAR_UNIT_M).ravel()])
-
-
 def features(kind: str, obs: dict[str, np.ndarray]) -> np.ndarray:
     """The feature vector (float32) of ``kind`` from a step's observation: the robot keys (``ee_pose``,
     ``gripper_width``, ``joint_positions``), for "state" ``part_pose``, ``part_axis`` and ``part_grasp_point``
     (:func:`live_step`), for keypoint kinds the keypoint keys (un-prefixed); for image kinds the robot's state only.
 
-    Positions are offsets from the TCP (:func:`_offsets`); the part's axis as this input sees it (the true
-    pose's, or the line through the two keypoints' last seen places) also relative to the hand's yaw."""
-    robot = _robot_features(obs)
+    Positions are offsets from the TCP (:func:`~don_gym.wrappers.rl.two_scale_offsets`); the part's axis as this
+    input sees it (the true pose's, or the line through the two keypoints' last seen places) also relative to the
+    hand's yaw. Keypoint kinds: :func:`~don_gym.wrappers.rl.hand_keypoint_features`, ages in
+    :data:`AGE_UNIT_STEPS`."""
     if is_image_kind(kind):
-        return robot.astype(np.float32)
-    tcp = np.asarray(obs["ee_pose"], dtype=np.float64)[:3]
-    R_world_hand = _hand_rotation(obs)
+        return robot_features(obs["ee_pose"], obs["joint_positions"], obs["gripper_width"]).astype(np.float32)
     if kind == "state":
+        robot = robot_features(obs["ee_pose"], obs["joint_positions"], obs["gripper_width"])
+        tcp = np.asarray(obs["ee_pose"], dtype=np.float64)[:3]
         pose = np.asarray(obs["part_pose"], dtype=np.float64)
         # The rotation's first two columns, not the quaternion: continuous, no sign to flip (Zhou et al. 2019).
         rotation = Rotation.from_quat(pose[3:]).as_matrix()[:, :2].T.ravel()
         axis_world = np.asarray(obs["part_axis"], dtype=np.float64)
-        axis = _axis_in_hand(axis_world, R_world_hand)
-        grasp = _offsets(np.asarray(obs["part_grasp_point"], dtype=np.float64) - tcp)
+        axis = axis_in_hand(axis_world, hand_rotation(obs["ee_pose"]))
+        grasp = two_scale_offsets(np.asarray(obs["part_grasp_point"], dtype=np.float64) - tcp)
         return np.concatenate([robot, grasp, rotation, axis_world, axis]).astype(np.float32)
-    confidence = np.asarray(obs["keypoint_confidence"], dtype=np.float64)
-    points = np.where(confidence[:, None] > 0, np.asarray(obs["keypoint_points"], dtype=np.float64) - tcp, 0.0)
-    remembered = np.asarray(obs["keypoint_memory_points"], dtype=np.float64)
-    age = np.asarray(obs["keypoint_age"], dtype=np.float64) / 100.0
-    axis = _axis_in_hand(remembered[-1] - remembered[0], R_world_hand)
-    memory = _offsets(remembered - tcp)
-    return np.concatenate([robot, _offsets(points), confidence, memory, age, axis]).astype(np.float32)
+    return hand_keypoint_features(obs, AGE_UNIT_STEPS).astype(np.float32)
 
 
 def image(kind: str, obs: dict[str, np.ndarray]) -> np.ndarray:
