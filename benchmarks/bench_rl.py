@@ -76,6 +76,16 @@ at the task's start first (``HandStarts(look_first=True)``)::
 
 (about 97 min with ``--jobs 2``; RESULTS "rl-sac-look": from the task's start 92% with true keypoints, 42% with
 the DON's, 36% with simulated ones.)
+With the imitation benchmark's features (``--sac-features hand``) and its lift episodes of 100 steps, measured on a
+fresh held-out set (``--eval-seed 200000``: episodes 100000.. had guided the choices before)::
+
+    python benchmarks/bench_rl.py --only sac --sac-memory --sac-window 192 --sac-steps 80000 \
+        --sac-don-steps 80000 --sac-demos 300 --sac-bc 1.0 --sac-demo-fraction 0.5 --sac-look-first \
+        --sac-features hand --sac-max-steps 100 --sac-eval-episodes 50 --eval-seed 200000 --out runs/rl-hand \
+        --jobs 2 --section rl-sac-hand
+
+(about 91 min with ``--jobs 2``; RESULTS "rl-sac-hand": from the task's start 98% with true keypoints, 46% trained
+and run with the DON's, 70% trained on simulated keypoints and run with the DON's.)
 
 Longer recipe for a GPU machine (16 cores, one GPU: the DON on the GPU on 8 envs' images at once, their
 physics in 8 subprocesses, a gradient step per env step)::
