@@ -117,7 +117,7 @@ from _results import FIGURES, REPO_ROOT, freeze_commit_description, record_secti
 
 from don_gym.agents import AxisGraspAgent, rl  # noqa: E402
 from don_gym.agents.rl_demos import check_demonstration_settings  # noqa: E402
-from don_gym.cli import positive_int  # noqa: E402
+from don_gym.cli import nonnegative_int, positive_int  # noqa: E402
 from don_gym.errors import DonGymError  # noqa: E402
 from don_gym.io import write_text_atomic  # noqa: E402
 from don_gym.objects import load_object  # noqa: E402
@@ -742,9 +742,9 @@ def _parser() -> argparse.ArgumentParser:
         "--keypoint-model", default=None, help=f"default: {PREFERRED_MODEL!r} if shipped, else 'oracle'"
     )
     parser.add_argument("--sensor", default="d435")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=nonnegative_int, default=0)
     parser.add_argument(
-        "--eval-seed", type=int, default=EVAL_SEED, metavar="S",
+        "--eval-seed", type=nonnegative_int, default=EVAL_SEED, metavar="S",
         help=f"held-out episodes are reset(seed=S + i) (default {EVAL_SEED}); a fresh S gives a fresh held-out set "
         "when the default's has guided choices",
     )  # fmt: skip

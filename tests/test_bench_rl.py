@@ -130,10 +130,15 @@ def test_the_hand_encoding_reaches_every_sac_run_and_needs_the_memory(tmp_path: 
     args.image_size = (64, 48)
     assert all(run.kwargs["env_kwargs"]["encoding"] == "hand" for run in bench_rl.sac_runs(args, "oracle"))
     assert "encoding" not in bench_rl.sac_runs(_args(tmp_path), "oracle")[0].kwargs["env_kwargs"]
-    with pytest.raises(SystemExit) as exit_info:
-        bench_rl.main(["--only", "sac", "--sac-features", "hand", "--out", str(tmp_path)])
-    assert exit_info.value.code == 2
-    assert "--sac-features hand reads the keypoints' memory" in capsys.readouterr().err
+    for options, message in (
+        (["--sac-features", "hand"], "--sac-features hand reads the keypoints' memory"),
+        (["--eval-seed", "-1"], "argument --eval-seed"),  # refused before hours of training, not at evaluation
+        (["--seed", "-1"], "argument --seed"),
+    ):
+        with pytest.raises(SystemExit) as exit_info:
+            bench_rl.main(["--only", "sac", *options, "--out", str(tmp_path)])
+        assert exit_info.value.code == 2
+        assert message in capsys.readouterr().err
 
 
 def test_demonstrations_and_discount_reach_every_sac_run_and_bad_options_are_refused(tmp_path: Path, capsys) -> None:
